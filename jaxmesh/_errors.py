@@ -1,0 +1,15 @@
+"""Errors raised by jaxmesh."""
+
+
+class MeshingError(RuntimeError):
+    """A meshing stage failed on valid input.
+
+    Carries the stage name and, where it applies, the inclusion id, so that a user
+    can tell which part of a large RVE caused the failure.
+    """
+
+    def __init__(self, stage: str, message: str, inclusion: int | None = None):
+        self.stage = stage
+        self.inclusion = inclusion
+        where = f"stage '{stage}'" + (f", inclusion {inclusion}" if inclusion is not None else "")
+        super().__init__(f"{where}: {message}")

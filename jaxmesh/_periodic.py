@@ -1,0 +1,57 @@
+"""The one home of periodic (minimum-image / wrap) arithmetic.
+
+Works on NumPy arrays and on JAX arrays (traced or not) alike: the array module is picked
+from the argument, and jax is only imported when a JAX array arrives, so NumPy topology
+code can use these functions without importing jax.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _array_module(x):
+    if isinstance(x, (np.ndarray, np.generic, float, int, list, tuple)):
+        return np
+    import jax.numpy as jnp  # only reached for JAX arrays / tracers
+
+    return jnp
+
+
+def wrap(points, box):
+    """Map points into the periodic cell [0, L) along every axis.
+
+    points: (..., d); box: (d,) lengths. Returns the same shape.
+    """
+    xp = _array_module(points)
+    box = xp.asarray(box, dtype=points.dtype if hasattr(points, "dtype") else None)
+    return points - box * xp.floor(points / box)
+
+
+def minimum_image(delta, box):
+    """Shortest periodic representative of a difference vector: each component in [-L/2, L/2].
+
+    delta: (..., d); box: (d,). Returns the same shape.
+    """
+    xp = _array_module(delta)
+    box = xp.asarray(box, dtype=delta.dtype if hasattr(delta, "dtype") else None)
+    return delta - box * xp.round(delta / box)
+
+
+def periodic_distance(a, b, box):
+    """Euclidean minimum-image distance between points a (..., d) and b (..., d)."""
+    xp = _array_module(a)
+    d = minimum_image(a - b, box)
+    return xp.sqrt(xp.sum(d * d, axis=-1))
+
+
+def image_shifts(dim: int, box) -> np.ndarray:
+    """The 3**dim lattice translations {-L, 0, L}^dim, (3**dim, dim), zero shift first."""
+    grids = np.meshgrid(*[np.array([0, -1, 1])] * dim, indexing="ij")
+    k = np.stack([g.ravel() for g in grids], axis=-1).astype(float)
+    return k * np.asarray(box, dtype=float)
+
+
+def wrap_index(index, n):
+    """Periodic grid index wrap (integer arrays, NumPy or JAX)."""
+    return index % n

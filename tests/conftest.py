@@ -1,0 +1,8 @@
+import os
+
+os.environ.setdefault("JAX_ENABLE_X64", "1")
+os.environ.setdefault("JAXMESH_SMOKE", "1")
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
