@@ -1,0 +1,1 @@
+"""Implicit geometry: level-set grids as JAX functions, differential geometry, microstructures."""
