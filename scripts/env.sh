@@ -18,8 +18,9 @@ find_python312() {
                  /usr/local/bin/python3.12 /usr/bin/python3.12 /opt/python*/bin/python3.12 python3)
     local c
     for c in "${candidates[@]}"; do
+        # print the real executable: a pyenv shim only works with PYENV_VERSION set
         if "$c" -c 'import sys, venv; sys.exit(0 if sys.version_info[:2] == (3, 12) else 1)' >/dev/null 2>&1; then
-            command -v "$c" 2>/dev/null || echo "$c"
+            "$c" -c 'import sys; print(sys.executable)'
             return 0
         fi
     done
