@@ -95,7 +95,7 @@ def _validate_box(box, ndim: int, shape: tuple[int, ...]) -> tuple[float, ...]:
         )
     if not np.all(np.isfinite(box_arr)) or np.any(box_arr <= 0):
         raise ValueError(
-            f"make_levelset_grid expected positive finite box lengths, got {tuple(box_arr)}. "
+            f"make_levelset_grid expected positive finite box lengths, got {tuple(box_arr.tolist())}. "
             "Hint: the box is the periodic cell [0, L_i) along each axis, L_i > 0."
         )
     spacing = box_arr / np.asarray(shape, dtype=float)
@@ -103,9 +103,9 @@ def _validate_box(box, ndim: int, shape: tuple[int, ...]) -> tuple[float, ...]:
     if spread > _SPACING_RTOL:
         raise ValueError(
             "make_levelset_grid expected equal grid spacing L_i/n_i on every axis (non-cubic "
-            f"spacing mismatch): box {tuple(box_arr)} over shape {shape} gives spacing "
-            f"{tuple(spacing)}. Hint: pass a box matching the array shape, e.g. "
-            f"box={tuple(float(n) * spacing.min() for n in shape)}."
+            f"spacing mismatch): box {tuple(box_arr.tolist())} over shape {shape} gives spacing "
+            f"{tuple(spacing.tolist())}. Hint: pass a box matching the array shape, e.g. "
+            f"box={tuple(float(n * spacing.min()) for n in shape)}."
         )
     return tuple(float(b) for b in box_arr)
 
