@@ -200,12 +200,15 @@ def _labels(points, cells, ids, lmax, ms):
     bad = mismatch & (phi > 0.5 * lmax)  # near the interface a centroid may fall either side
     known = {int(i.id) for i in ms.inclusions} | {0}
     unknown = sorted(set(np.unique(ids).tolist()) - known)
-    # Dominant field label per mesh id must be the id itself (one-to-one map).
-    mapping = {}
-    for k in np.unique(ids):
-        vals, cnt = np.unique(lab[ids == k], return_counts=True)
-        mapping[int(k)] = int(vals[np.argmax(cnt)])
-    wrong_map = {k: v for k, v in mapping.items() if k != v}
+    # One-to-one: the dominant field label of each mesh id is the id itself, and the dominant
+    # mesh id of each field label is that label (catches merges of small inclusions whose every
+    # centroid sits near the interface).
+    wrong_map = {}
+    for src, dst, fmt in ((ids, lab, "mesh {} -> field {}"), (lab, ids, "field {} -> mesh {}")):
+        for k in np.unique(src):
+            vals, cnt = np.unique(dst[src == k], return_counts=True)
+            if int(vals[np.argmax(cnt)]) != int(k):
+                wrong_map[fmt.format(int(k), int(vals[np.argmax(cnt)]))] = 1
     counts = {"mismatched": int(mismatch.sum()), "tolerated_near_interface": int((mismatch & ~bad).sum()),
               "bad": int(bad.sum()), "unknown_ids": len(unknown), "wrong_mapping": len(wrong_map)}
     ok = not bad.any() and not unknown and not wrong_map
@@ -219,7 +222,7 @@ def _labels(points, cells, ids, lmax, ms):
         if unknown:
             parts.append(f"mesh ids {unknown} are not inclusions of the microstructure")
         if wrong_map:
-            parts.append(f"mesh id -> field id {wrong_map}")
+            parts.append(f"ids do not map one-to-one: {', '.join(wrong_map)}")
         detail = "; ".join(parts)
     return Check("labels", ok, detail, counts)
 
