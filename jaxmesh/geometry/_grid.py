@@ -7,6 +7,7 @@ along an axis sits at x = i * L / n, i = 0 .. n-1 (no duplicated last node, wrap
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from typing import Literal
 
@@ -207,6 +208,9 @@ def _prepare(values, box, points) -> tuple[Array, Array, Array]:
     return values.astype(dtype), jnp.asarray(box, dtype=dtype), points.astype(dtype)
 
 
+# jitted (shapes, stencil and weights static) so that eager calls compile once instead of
+# dispatching every small op; inside an outer jit it inlines
+@functools.partial(jax.jit, static_argnames=("offsets", "weights_fn"))
 def _tensor_interpolate(values, box, points, offsets, weights_fn) -> Array:
     """Separable stencil interpolation on a periodic grid.
 
@@ -292,6 +296,11 @@ def bspline_coefficients(values: Float[ArrayLike, "..."]) -> Float[Array, "..."]
     c = jnp.asarray(values)
     if not jnp.issubdtype(c.dtype, jnp.floating):
         c = c.astype(_default_dtype())
+    return _prefilter(c)
+
+
+@jax.jit
+def _prefilter(c: Array) -> Array:
     for a in range(c.ndim):
         n = c.shape[a]
         kernel = _periodic_kernel_hat(n, c.dtype)
