@@ -1,0 +1,344 @@
+"""Interface curves of a periodic 2D microstructure (NumPy only, never imports jax).
+
+Paper section 4.4 in 2D: each inclusion's zero contour is extracted ON ITS OWN from its own
+level set sampled on a local window (its bounds + a margin, in unwrapped coordinates: the
+level set is periodic, so the window may stick out of the box), with
+``skimage.measure.find_contours``. A closed contour in unwrapped coordinates is then cut by
+the lattice lines x = k Lx and y = m Ly; every piece between two crossings lies in one
+lattice cell and is translated into the box. A crossing on x = k Lx is one point on the
+master edge x = 0 and its translate on x = Lx: both arcs that meet there share it.
+
+Section 4.5 in 2D: the box edges are meshed once on the master edges (x = 0, y = 0) between
+the crossings and corners, at spacing ~h, and copied to the opposite edges.
+
+The level-set numerics (projection onto phi = 0) arrive as callbacks from the JAX side.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from skimage.measure import find_contours
+
+from ._errors import MeshingError
+from ._periodic import wrap
+from ._triangulate2d import BOX_EDGE, BOX_SEGMENT, FIXED, INTERFACE, PSLG
+
+
+@dataclass(frozen=True)
+class Crossing:
+    """An interface crossing a box line.
+
+    Attributes:
+        axis: normal axis of the line: the point is (0, t) / (Lx, t) for axis 0, (t, 0) / (t, Ly) for axis 1.
+        t: coordinate along the line, in (0, L_other).
+        inclusion_id: the inclusion whose interface crosses.
+    """
+
+    axis: int
+    t: float
+    inclusion_id: int
+
+
+@dataclass
+class Arc:
+    """A piece of an interface inside the box.
+
+    Attributes:
+        inclusion_id: owner inclusion.
+        points: (k, 2) box coordinates; open arcs include both crossing endpoints, closed loops
+            do not repeat their first point.
+        closed: a loop that never meets the box boundary.
+        start, end: (crossing index, side) of the endpoints of an open arc, side 0 = on the master
+            line x_axis = 0, side 1 = on x_axis = L; None for a closed loop.
+    """
+
+    inclusion_id: int
+    points: np.ndarray
+    closed: bool
+    start: tuple[int, int] | None = None
+    end: tuple[int, int] | None = None
+
+
+# ----------------------------------------------------------------------------- extraction
+def window_grid(lower, upper, step: float, margin: float, box) -> tuple[np.ndarray, np.ndarray]:
+    """Sample coordinates of a local window around an inclusion.
+
+    Args:
+        lower, upper: (2,) unwrapped bounds of the inclusion. step: sample spacing.
+        margin: added on every side. box: (2,) lengths (the window must stay shorter than the box,
+            else periodic images of the inclusion would enter it).
+    Returns:
+        (origin (2,), shape (2,) int): samples at origin + i * step.
+    """
+    lower = np.asarray(lower, dtype=float) - margin
+    upper = np.asarray(upper, dtype=float) + margin
+    if np.any(upper - lower >= np.asarray(box, dtype=float)):
+        raise ValueError(
+            f"expected an inclusion window shorter than the box {tuple(box)}, got extent {tuple(upper - lower)}; "
+            "hint: an inclusion spanning (almost) the whole box cannot be meshed as a closed curve"
+        )
+    shape = np.ceil((upper - lower) / step).astype(np.int64) + 1
+    return lower, shape
+
+
+def extract_loops(values: np.ndarray, origin, step: float, inclusion_id: int) -> list[np.ndarray]:
+    """Closed zero contours of a window sample, in unwrapped coordinates.
+
+    Args:
+        values: (nx, ny) samples of the inclusion's level set at origin + (i, j) * step.
+        origin: (2,). step: spacing. inclusion_id: for error messages.
+    Returns:
+        list of (k, 2) loops (first point not repeated). Raises MeshingError when a contour is
+        open (the inclusion reaches the window boundary).
+    """
+    values = np.asarray(values, dtype=float)
+    if not np.any(values < 0):
+        raise MeshingError("contours", "the level set has no negative sample in its window", inclusion_id)
+    loops = []
+    for c in find_contours(values, 0.0):
+        if not np.allclose(c[0], c[-1]):
+            raise MeshingError(
+                "contours", "the zero contour reaches the edge of the inclusion window (bounds too small?)",
+                inclusion_id,
+            )
+        c = c[:-1]
+        keep = np.ones(len(c), dtype=bool)
+        keep[1:] = np.any(np.abs(np.diff(c, axis=0)) > 1e-12, axis=1)
+        c = c[keep]
+        if len(c) >= 3:
+            loops.append(np.asarray(origin, dtype=float) + c * step)
+    if not loops:
+        raise MeshingError("contours", "no closed zero contour found", inclusion_id)
+    return loops
+
+
+# ----------------------------------------------------------------------------- cutting
+def cut_loop(
+    loop: np.ndarray, box, refine_fn: Callable, inclusion_id: int
+) -> tuple[list[Arc], list[Crossing]]:
+    """Cut a closed unwrapped loop by the lattice lines and translate the pieces into the box.
+
+    Args:
+        loop: (n, 2) closed polyline (unwrapped, first point not repeated), ideally on phi = 0.
+        box: (2,) lengths.
+        refine_fn: ``(points (k, 2), axis (k,)) -> (k, 2)``: moves each approximate crossing along
+            its line (coordinate ``axis`` untouched) onto phi = 0.
+        inclusion_id: owner.
+    Returns:
+        (arcs, crossings): arcs' start/end refer to indices into ``crossings``.
+    """
+    L = np.asarray(box, dtype=float)
+    V = np.asarray(loop, dtype=float)
+    W = np.roll(V, -1, axis=0)
+    n = len(V)
+    cv = np.floor(V / L).astype(np.int64)
+    cw = np.roll(cv, -1, axis=0)
+    js, ts, axes, ks, dirs = [], [], [], [], []
+    for a in (0, 1):
+        j = np.nonzero(cv[:, a] != cw[:, a])[0]
+        if np.any(np.abs(cv[j, a] - cw[j, a]) > 1):
+            raise MeshingError("contours", "a contour segment is longer than the box", inclusion_id)
+        k = np.maximum(cv[j, a], cw[j, a])
+        js.append(j)
+        ts.append((k * L[a] - V[j, a]) / (W[j, a] - V[j, a]))
+        axes.append(np.full(j.size, a))
+        ks.append(k)
+        dirs.append(cw[j, a] - cv[j, a])
+    j, t, ax, k, dr = (np.concatenate(x) for x in (js, ts, axes, ks, dirs))
+    if j.size == 0:
+        return [Arc(inclusion_id, V - cv[0] * L, closed=True)], []
+    order = np.lexsort((t, j))
+    j, t, ax, k, dr = j[order], t[order], ax[order], k[order], dr[order]
+    approx = V[j] + t[:, None] * (W[j] - V[j])
+    rows = np.arange(j.size)
+    approx[rows, ax] = k * L[ax]
+    pts = np.asarray(refine_fn(approx, ax), dtype=float).copy()
+    pts[rows, ax] = k * L[ax]  # exactly on the line
+    other = 1 - ax
+    tcan = wrap(pts[rows, other], L[other])
+    # a crossing at (or within rounding of) a box corner has no well defined edge
+    gap = np.minimum(tcan, L[other] - tcan)
+    if np.any(gap < 1e-9 * L[other]):
+        raise MeshingError("contours", "the interface passes through a box corner; shift the geometry slightly",
+                           inclusion_id)
+    crossings = [Crossing(int(a), float(tc), inclusion_id) for a, tc in zip(ax, tcan)]
+
+    arcs = []
+    cur = cv[j[0]].copy()
+    m = j.size
+    for e in range(m):
+        cur[ax[e]] += dr[e]
+        nxt = (e + 1) % m
+        count = (j[nxt] - j[e]) % n
+        vid = (j[e] + 1 + np.arange(count)) % n
+        inner = V[vid] - cur * L
+        start, sside = _local_crossing(pts[e], ax[e], k[e], tcan[e], cur, L, inclusion_id)
+        end, eside = _local_crossing(pts[nxt], ax[nxt], k[nxt], tcan[nxt], cur, L, inclusion_id)
+        arcs.append(Arc(inclusion_id, np.vstack([start, inner, end]), False, (e, sside), (nxt, eside)))
+    return arcs, crossings
+
+
+def _local_crossing(p, a, k, tcan, cell, L, inclusion_id):
+    """Box coordinates of a crossing seen from the arc in lattice cell ``cell``, and its side."""
+    a = int(a)
+    b = 1 - a
+    side = int(k - cell[a])
+    if side not in (0, 1) or abs(p[b] - cell[b] * L[b] - tcan) > 1e-6 * L[b]:
+        raise MeshingError("contours", "inconsistent crossing bookkeeping (interface near a box corner?)",
+                           inclusion_id)
+    q = np.empty(2)
+    q[a] = side * L[a]
+    q[b] = tcan
+    return q, side
+
+
+# ----------------------------------------------------------------------------- resampling
+def resample_polyline(points: np.ndarray, closed: bool, h_fn: Callable, min_segments: int = 1) -> np.ndarray:
+    """Nodes equidistributed in h-weighted arclength (integral of ds / h) along a polyline.
+
+    Args:
+        points: (k, 2) polyline (closed: first point not repeated).
+        closed: loop or open arc (open arcs keep both endpoints exactly).
+        h_fn: NumPy size function (m, 2) -> (m,).
+        min_segments: lower bound on the number of segments.
+    Returns:
+        (n, 2) nodes; open arcs: n = segments + 1, closed loops: n = segments.
+    """
+    P = np.vstack([points, points[:1]]) if closed else np.asarray(points, dtype=float)
+    seg = np.diff(P, axis=0)
+    ds = np.linalg.norm(seg, axis=1)
+    w = ds / np.asarray(h_fn(0.5 * (P[:-1] + P[1:])), dtype=float)
+    S = np.concatenate([[0.0], np.cumsum(w)])
+    nseg = max(int(min_segments), int(np.round(S[-1])))
+    targets = np.linspace(0.0, S[-1], nseg + 1)
+    if closed:
+        targets = targets[:-1]
+    idx = np.clip(np.searchsorted(S, targets, side="right") - 1, 0, len(ds) - 1)
+    frac = np.where(w[idx] > 0, (targets - S[idx]) / np.where(w[idx] > 0, w[idx], 1.0), 0.0)
+    nodes = P[idx] + np.clip(frac, 0.0, 1.0)[:, None] * seg[idx]
+    if not closed:
+        nodes[0], nodes[-1] = P[0], P[-1]
+    return nodes
+
+
+def edge_parameters(breaks: np.ndarray, line_point: Callable, h_fn: Callable) -> np.ndarray:
+    """Node parameters along a straight box edge, ~h apart between fixed break points.
+
+    Args:
+        breaks: sorted (b,) parameters that must be nodes (corners, crossings).
+        line_point: t (m,) -> points (m, 2) on the edge.
+        h_fn: NumPy size function (m, 2) -> (m,).
+    Returns:
+        sorted parameters including every break.
+    """
+    out = [np.asarray(breaks[:1], dtype=float)]
+    for t0, t1 in zip(breaks[:-1], breaks[1:]):
+        length = t1 - t0
+        h_ends = np.asarray(h_fn(line_point(np.array([t0, t1]))), dtype=float)
+        fine = np.linspace(t0, t1, max(8, int(np.ceil(8 * length / h_ends.min()))) + 1)
+        w = np.diff(fine) / np.asarray(h_fn(line_point(0.5 * (fine[:-1] + fine[1:]))), dtype=float)
+        S = np.concatenate([[0.0], np.cumsum(w)])
+        nseg = max(1, int(np.round(S[-1])))
+        inner = np.interp(np.linspace(0.0, S[-1], nseg + 1)[1:-1], S, fine)
+        out.extend([inner, np.array([t1], dtype=float)])
+    return np.concatenate(out)
+
+
+# ----------------------------------------------------------------------------- assembly
+def assemble_pslg(arcs: list[Arc], crossings: list[Crossing], box, h_fn: Callable) -> PSLG:
+    """Constrained graph of the box: corners, box-edge nodes (master edges copied), interface arcs.
+
+    Args:
+        arcs: resampled arcs/loops (open arcs end exactly at their crossings).
+        crossings: every crossing the arcs refer to.
+        box: (Lx, Ly). h_fn: NumPy size function for the box-edge spacing.
+    Returns:
+        :class:`PSLG` with periodic pairs for both axes (corners included).
+    """
+    L = np.asarray(box, dtype=float)
+    pts = [np.array([0.0, 0.0]), np.array([L[0], 0.0]), np.array([0.0, L[1]]), np.array([L[0], L[1]])]
+    BL, BR, TL, TR = 0, 1, 2, 3
+    kind, axis, ninc = [FIXED] * 4, [-1] * 4, [0] * 4
+    seg, seg_inc, seg_partner = [], [], []
+    pairs = {0: [(BL, BR), (TL, TR)], 1: [(BL, TL), (BR, TR)]}
+    corner_chain = {0: ((BL, TL), (BR, TR)), 1: ((BL, BR), (TL, TR))}
+    node_of = {}  # (crossing index, side) -> node id
+
+    def add(p, k, a, i):
+        pts.append(np.asarray(p, dtype=float))
+        kind.append(k)
+        axis.append(a)
+        ninc.append(i)
+        return len(pts) - 1
+
+    for a in (0, 1):
+        b = 1 - a
+        cid = np.array([i for i, c in enumerate(crossings) if c.axis == a], dtype=np.int64)
+        tc = np.array([crossings[i].t for i in cid], dtype=float)
+        order = np.argsort(tc)
+        cid, tc = cid[order], tc[order]
+        if tc.size > 1 and np.any(np.diff(tc) <= 1e-12 * L[b]):
+            raise MeshingError("box edges", f"two interfaces cross the box line x_{a} = 0 at the same point")
+
+        def line_point(t, a=a, b=b):
+            p = np.zeros((len(t), 2))
+            p[:, b] = t
+            return p
+
+        params = edge_parameters(np.concatenate([[0.0], tc, [L[b]]]), line_point, h_fn)
+        is_crossing = np.zeros(len(params), dtype=bool)
+        where = np.searchsorted(params, tc)
+        assert np.all(params[where] == tc)
+        is_crossing[where] = True
+        owner = np.zeros(len(params), dtype=np.int64)
+        owner[where] = [crossings[i].inclusion_id for i in cid]
+        (lo_m, hi_m), (lo_s, hi_s) = corner_chain[a]
+        chain_m, chain_s = [lo_m], [lo_s]
+        for i in range(1, len(params) - 1):
+            pm = np.zeros(2)
+            pm[b] = params[i]
+            ps = pm.copy()
+            ps[a] = L[a]
+            k = FIXED if is_crossing[i] else BOX_EDGE
+            chain_m.append(add(pm, k, a, owner[i]))
+            chain_s.append(add(ps, k, a, owner[i]))
+            pairs[a].append((chain_m[-1], chain_s[-1]))
+        chain_m.append(hi_m)
+        chain_s.append(hi_s)
+        for c, w in zip(cid, where):
+            node_of[(int(c), 0)] = chain_m[w]
+            node_of[(int(c), 1)] = chain_s[w]
+        s0 = len(seg)
+        nb = len(chain_m) - 1
+        for i in range(nb):
+            seg.append((chain_m[i], chain_m[i + 1]))
+            seg.append((chain_s[i], chain_s[i + 1]))
+            seg_inc.extend([BOX_SEGMENT, BOX_SEGMENT])
+            seg_partner.extend([s0 + 2 * i + 1, s0 + 2 * i])
+
+    for arc in arcs:
+        nodes = np.asarray(arc.points, dtype=float)
+        if arc.closed:
+            ids = [add(p, INTERFACE, -1, arc.inclusion_id) for p in nodes]
+            ring = ids + ids[:1]
+        else:
+            ids = [add(p, INTERFACE, -1, arc.inclusion_id) for p in nodes[1:-1]]
+            ring = [node_of[arc.start]] + ids + [node_of[arc.end]]
+        for u, v in zip(ring[:-1], ring[1:]):
+            seg.append((u, v))
+            seg_inc.append(arc.inclusion_id)
+            seg_partner.append(-1)
+    return PSLG(
+        points=np.asarray(pts, dtype=float),
+        segments=np.asarray(seg, dtype=np.int64).reshape(-1, 2),
+        segment_inclusion=np.asarray(seg_inc, dtype=np.int64),
+        segment_partner=np.asarray(seg_partner, dtype=np.int64),
+        node_kind=np.asarray(kind, dtype=np.int8),
+        node_axis=np.asarray(axis, dtype=np.int8),
+        node_inclusion=np.asarray(ninc, dtype=np.int64),
+        periodic_pairs={a: np.asarray(pairs[a], dtype=np.int64) for a in (0, 1)},
+        box=(float(L[0]), float(L[1])),
+    )
