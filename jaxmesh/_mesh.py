@@ -54,7 +54,7 @@ def _check_box(box, dim: int) -> np.ndarray:
 
 
 def on_box_planes(points: np.ndarray, box, tol: float = 1e-9) -> np.ndarray:
-    """(n, d, 2) bool: point lies on the min (…, 0) / max (…, 1) plane of each axis.
+    """(n, d, 2) bool: point lies on the min ([..., 0]) / max ([..., 1]) plane of each axis.
 
     The tolerance is relative: |x_a - side * L_a| <= tol * L_a.
     """

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._mesh import CELL_TYPES, FACET_TYPES, box_features, face_names, feature_name, on_box_planes
+from .._mesh import CELL_TYPES, FACET_TYPES, box_features, face_names, on_box_planes
 
 FORMATS = {".vtu": "vtu", ".msh": "gmsh", ".xdmf": "xdmf", ".inp": "abaqus", ".vtk": "vtk", ".npz": "npz"}
 _ALIASES = {"msh": "gmsh", "gmsh41": "gmsh", "inp": "abaqus", "vtu": "vtu", "gmsh": "gmsh", "xdmf": "xdmf",
@@ -172,6 +172,8 @@ def _write_gmsh41(mesh, tmp: Path) -> None:
     (faces: xmin=1, xmax=2, ymin=3, ...); volume entity and physical tag of inclusion k = k + 1
     (named 'matrix' / 'inclusion_k'); box faces carry physical groups named 'xmin', 'xmax', ...
     Periodic links: max face (slave) <- min face (master), affine = translation by L.
+    Node tags are renumbered by entity block; $NodeData "node_id" holds each node's index in
+    mesh.points.
     """
     d, pts, box = mesh.dim, mesh.points, np.asarray(mesh.box)
     ids = mesh.inclusion_id
@@ -237,13 +239,18 @@ def _write_gmsh41(mesh, tmp: Path) -> None:
             box_txt = " ".join(f"{x:.16g}" for x in np.concatenate([lo, hi]))
             fh.write(f"{k + 1} {box_txt} 1 {k + 1} 0\n")
         fh.write("$EndEntities\n$Nodes\n")
+        # Node tags follow the entity blocks (1..n in file order): readers that store points in
+        # file order (meshio) then agree with the tags used by elements and $Periodic.
+        order = np.lexsort((np.arange(len(pts)), node_tag, node_dim))
+        new_tag = np.empty(len(pts), dtype=np.int64)
+        new_tag[order] = np.arange(1, len(pts) + 1)
         blocks = sorted({(int(a), int(b)) for a, b in zip(node_dim, node_tag)})
         fh.write(f"{len(blocks)} {len(pts)} 1 {len(pts)}\n")
         for bd, bt in blocks:
-            sel = np.flatnonzero((node_dim == bd) & (node_tag == bt))
+            sel = order[(node_dim[order] == bd) & (node_tag[order] == bt)]
             fh.write(f"{bd} {bt} 0 {len(sel)}\n")
-            _fmt_rows(fh, (sel + 1)[:, None])
-            np.savetxt(fh, xyz[sel], fmt="%.16g")
+            _fmt_rows(fh, new_tag[sel][:, None])
+            np.savetxt(fh, xyz[sel], fmt="%.17g")
         fh.write("$EndNodes\n$Elements\n")
         eblocks = [(d, k + 1, _GMSH_TYPES[CELL_TYPES[d]], mesh.cells[ids == k]) for k in vol_ids]
         eblocks += [(d - 1, i + 1, _GMSH_TYPES[FACET_TYPES[d]], bfac[n]) for i, n in enumerate(fnames) if len(bfac[n])]
@@ -252,7 +259,7 @@ def _write_gmsh41(mesh, tmp: Path) -> None:
         start = 1
         for bd, bt, et, conn in eblocks:
             fh.write(f"{bd} {bt} {et} {len(conn)}\n")
-            _fmt_rows(fh, np.column_stack([np.arange(start, start + len(conn)), conn + 1]))
+            _fmt_rows(fh, np.column_stack([np.arange(start, start + len(conn)), new_tag[conn]]))
             start += len(conn)
         fh.write("$EndElements\n")
         if mesh.periodic and mesh.periodic_pairs:
@@ -264,5 +271,9 @@ def _write_gmsh41(mesh, tmp: Path) -> None:
                 fh.write(f"{d - 1} {tag_of[((a, 1),)]} {tag_of[((a, 0),)]}\n")
                 fh.write("16 " + " ".join(f"{x:.16g}" for x in affine.ravel()) + "\n")
                 fh.write(f"{len(pairs)}\n")
-                _fmt_rows(fh, np.asarray(pairs)[:, ::-1] + 1)
+                _fmt_rows(fh, new_tag[np.asarray(pairs, dtype=np.int64)[:, ::-1]])
             fh.write("$EndPeriodic\n")
+        # The jaxmesh node index of every Gmsh node, to map file data back onto mesh.points.
+        fh.write(f'$NodeData\n1\n"node_id"\n1\n0\n3\n0\n1\n{len(pts)}\n')
+        _fmt_rows(fh, np.column_stack([np.arange(1, len(pts) + 1), order]))
+        fh.write("$EndNodeData\n")
