@@ -1,1 +1,4 @@
 """Reading inputs and writing meshes."""
+
+from ._read_mesh import read_mesh as read_mesh
+from ._write import write_mesh as write_mesh

@@ -46,7 +46,7 @@ def read_mesh(path, box=None, periodic: bool = True):
                 break
         inclusion_id = ids if ids is not None else np.zeros(len(cells), np.int64)
         if ids is not None and key == "gmsh:physical":
-            inclusion_id = inclusion_id - inclusion_id.min()  # jaxmesh writes matrix as the lowest tag
+            inclusion_id = inclusion_id - 1  # jaxmesh writes physical tag = inclusion id + 1
     lower = points.min(axis=0)
     if np.any(np.abs(lower) > 1e-9 * np.ptp(points, axis=0).max()):
         raise ValueError(f"{path}: expected a box with its origin at 0, the points start at {lower.tolist()}")
