@@ -310,6 +310,36 @@ def test_divergence_triggers_dt_retry_and_is_reported():
     res = relax(pts, delaunay_2d, h_uniform, cons, config=cfg, box=(1.0, 1.0))
     assert {h["attempt"] for h in res.history} == {0, 1} and res.dt == pytest.approx(0.1)
     assert res.stop_reason == "converged"
+    # the work caps are reported as such
+    cfg = TrussConfig(dt=0.05, max_iterations=7, max_retriangulations=0, max_dt_retries=0, retriangulate_tol=10.0)
+    res = relax(pts, delaunay_2d, h_uniform, cons, config=cfg, box=(1.0, 1.0))
+    assert res.stop_reason == "max_iterations" and res.n_iterations == 7 and res.n_retriangulations == 0
+    cfg = TrussConfig(dt=0.05, max_retriangulations=2, max_dt_retries=0, retriangulate_tol=0.01)
+    res = relax(pts, delaunay_2d, h_uniform, cons, config=cfg, box=(1.0, 1.0))
+    assert res.stop_reason == "max_retriangulations" and res.n_retriangulations == 2
+
+
+def test_float32_points_stay_float32():
+    pts, locked, pairs = periodic_square(seed=13)
+    cons = make_constraints(len(pts), 2, locked_axes=locked, periodic_pairs=pairs)
+    res = relax(pts.astype(np.float32), delaunay_2d, h_uniform, cons, config=TrussConfig(max_retriangulations=50))
+    assert res.points.dtype == np.float32 and res.stop_reason == "converged"
+    for i, j, off in pairs:  # exact up to float32 rounding of the translation
+        np.testing.assert_allclose(res.points[j] - res.points[i], off, rtol=0, atol=1e-6)
+
+
+def test_topology_module_never_imports_jax():
+    import subprocess
+    import sys
+
+    import jaxmesh._truss._topology as topo
+
+    code = (
+        "import importlib.util, sys; spec = importlib.util.spec_from_file_location('topo', sys.argv[1]); "
+        "m = importlib.util.module_from_spec(spec); spec.loader.exec_module(m); "
+        "m.edges_from_simplices(__import__('numpy').array([[0, 1, 2]])); assert 'jax' not in sys.modules"
+    )
+    subprocess.run([sys.executable, "-c", code, topo.__file__], check=True)
 
 
 # ---------------------------------------------------------------- gradients through the scan

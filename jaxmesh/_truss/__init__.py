@@ -10,6 +10,7 @@ from ._constraints import filter_forces as filter_forces
 from ._constraints import impose_periodicity as impose_periodicity
 from ._constraints import make_constraints as make_constraints
 from ._constraints import project_to_surface as project_to_surface
+from ._constraints import truss_step as truss_step
 from ._energy import alpha_schedule as alpha_schedule
 from ._energy import ball_vertex_energy as ball_vertex_energy
 from ._energy import bar_energy as bar_energy
@@ -26,7 +27,6 @@ from ._relax import RelaxResult as RelaxResult
 from ._relax import TrussConfig as TrussConfig
 from ._relax import relax as relax
 from ._relax import relax_fixed_topology as relax_fixed_topology
-from ._relax import truss_step as truss_step
 from ._topology import bucket_capacity as bucket_capacity
 from ._topology import edges_from_simplices as edges_from_simplices
 from ._topology import pad_rows as pad_rows

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._energy import phi_and_grad
+from ._energy import ball_vertex_energy, phi_and_grad, size_at, target_lengths, truss_energy
 
 __all__ = [
     "NodeConstraints",
@@ -25,6 +25,7 @@ __all__ = [
     "filter_forces",
     "project_to_surface",
     "impose_periodicity",
+    "truss_step",
 ]
 
 
@@ -269,3 +270,57 @@ def project_to_surface(
 def impose_periodicity(points: Float[Array, "n d"], constraints: NodeConstraints) -> Float[Array, "n d"]:
     """Re-impose p[i] = p[rep[i]] + offset[i] exactly (representatives are unchanged)."""
     return points[constraints.periodic_rep] + constraints.periodic_offset.astype(points.dtype)
+
+
+def truss_step(
+    points: Float[Array, "n d"],
+    alpha,
+    bars: Int[Array, "m 2"],
+    bar_mask: Bool[Array, " m"],
+    constraints: NodeConstraints,
+    dt,
+    h_fn: Callable,
+    h_params: Any = None,
+    surface_phi_fn: Callable | None = None,
+    phi_params: Any = None,
+    *,
+    fscale=1.2,
+    power: int = 2,
+    cutoff: bool = False,
+    n_newton: int = 2,
+    tets: Int[Array, "t 4"] | None = None,
+    tet_mask: Bool[Array, " t"] | None = None,
+    ball_vertex_stiffness=0.0,
+    ball_vertex_quality=0.3,
+) -> Float[Array, "n d"]:
+    """One constrained forward-Euler step p + dt F (eq. 7, 11); pure and differentiable.
+
+    F = -grad(bar energy [+ ball-vertex energy]) - phi grad phi on surface nodes; then periodic
+    averaging, constraint filtering, the move, Newton projection onto phi = 0 and exact
+    re-imposition of the periodic translations.
+
+    Returns:
+        new points (n, d).
+    """
+    l0, scale = target_lengths(points, bars, bar_mask, h_fn, h_params, fscale=fscale, power=power)
+    use_bv = tets is not None
+
+    def energy(x):
+        e = truss_energy(x, bars, bar_mask, l0, alpha, cutoff=cutoff)
+        if use_bv:
+            h_tet = scale * size_at(h_fn, jnp.mean(points[tets], axis=1), h_params)
+            e = e + ball_vertex_energy(
+                x, tets, tet_mask, h_tet, quality_threshold=ball_vertex_quality, stiffness=ball_vertex_stiffness
+            )
+        return e
+
+    forces = -jax.grad(energy)(points)
+    normals = None
+    if surface_phi_fn is not None:
+        phi, normals = phi_and_grad(surface_phi_fn, points, phi_params, mask=constraints.on_surface)
+        forces = forces - phi[:, None] * normals  # reaction -phi grad phi (eq. 10), surface nodes only
+    forces = filter_forces(average_periodic(forces, constraints), constraints, normals)
+    new = points + dt * forces
+    if surface_phi_fn is not None:
+        new = project_to_surface(new, constraints, surface_phi_fn, phi_params, n_newton)
+    return impose_periodicity(new, constraints)

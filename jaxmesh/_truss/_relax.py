@@ -16,19 +16,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._constraints import NodeConstraints, average_periodic, filter_forces, impose_periodicity, project_to_surface
-from ._energy import (
-    alpha_schedule,
-    ball_vertex_energy,
-    bar_lengths,
-    phi_and_grad,
-    size_at,
-    target_lengths,
-    truss_energy,
-)
+from ._constraints import NodeConstraints, impose_periodicity, truss_step
+from ._energy import alpha_schedule, bar_lengths, size_at, target_lengths
 from ._topology import bucket_capacity, edges_from_simplices, pad_rows
 
-__all__ = ["TrussConfig", "RelaxResult", "relax", "relax_fixed_topology", "truss_step"]
+__all__ = ["TrussConfig", "RelaxResult", "relax", "relax_fixed_topology"]
 
 # status codes of a scan chunk
 RUNNING, CONVERGED, RETRIANGULATE, MAX_ITERATIONS, DIVERGED = 0, 1, 2, 3, 4
@@ -146,60 +138,6 @@ class _Static(NamedTuple):  # hashable: static under eqx.filter_jit
     ball_vertex: bool
 
 
-def truss_step(
-    points: Float[Array, "n d"],
-    alpha,
-    bars: Int[Array, "m 2"],
-    bar_mask: Bool[Array, " m"],
-    constraints: NodeConstraints,
-    dt,
-    h_fn: Callable,
-    h_params: Any = None,
-    surface_phi_fn: Callable | None = None,
-    phi_params: Any = None,
-    *,
-    fscale=1.2,
-    power: int = 2,
-    cutoff: bool = False,
-    n_newton: int = 2,
-    tets: Int[Array, "t 4"] | None = None,
-    tet_mask: Bool[Array, " t"] | None = None,
-    ball_vertex_stiffness=0.0,
-    ball_vertex_quality=0.3,
-) -> Float[Array, "n d"]:
-    """One constrained forward-Euler step p + dt F (eq. 7, 11); pure and differentiable.
-
-    F = -grad(bar energy [+ ball-vertex energy]) - phi grad phi on surface nodes; then periodic
-    averaging, constraint filtering, the move, Newton projection onto phi = 0 and exact
-    re-imposition of the periodic translations.
-
-    Returns:
-        new points (n, d).
-    """
-    l0, scale = target_lengths(points, bars, bar_mask, h_fn, h_params, fscale=fscale, power=power)
-    use_bv = tets is not None
-
-    def energy(x):
-        e = truss_energy(x, bars, bar_mask, l0, alpha, cutoff=cutoff)
-        if use_bv:
-            h_tet = scale * size_at(h_fn, jnp.mean(points[tets], axis=1), h_params)
-            e = e + ball_vertex_energy(
-                x, tets, tet_mask, h_tet, quality_threshold=ball_vertex_quality, stiffness=ball_vertex_stiffness
-            )
-        return e
-
-    forces = -jax.grad(energy)(points)
-    normals = None
-    if surface_phi_fn is not None:
-        phi, normals = phi_and_grad(surface_phi_fn, points, phi_params, mask=constraints.on_surface)
-        forces = forces - phi[:, None] * normals  # reaction -phi grad phi (eq. 10), surface nodes only
-    forces = filter_forces(average_periodic(forces, constraints), constraints, normals)
-    new = points + dt * forces
-    if surface_phi_fn is not None:
-        new = project_to_surface(new, constraints, surface_phi_fn, phi_params, n_newton)
-    return impose_periodicity(new, constraints)
-
-
 def _check_points(points, constraints):
     if not isinstance(constraints, NodeConstraints):
         raise ValueError(
@@ -276,6 +214,7 @@ def relax_fixed_topology(
 def _run_chunk(p, bars, bar_mask, l_ref, l_norm, cons, tets, tet_mask, sc, h_fn, h_params, phi_fn, phi_params, st: _Static):
     """Up to st.n_steps Euler steps; the state freezes at the first stop event (status != RUNNING)."""
     _TRACES["chunk"] += 1
+
     def body(carry, _):
         p, status, it, li = carry
         alpha = alpha_schedule(it, sc["ramp"], sc["alpha_start"])
