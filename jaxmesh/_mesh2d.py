@@ -21,6 +21,7 @@ field at its triangle centroids (weighted by |phi|).
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +29,6 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ._contours import Arc, assemble_pslg, cut_loop, extract_loops, resample_polyline, window_grid
 from ._errors import MeshingError
@@ -38,14 +38,16 @@ from ._triangulate2d import (
     INTERFACE,
     PSLG,
     component_labels,
+    distance_to_segments,
     conforming_delaunay,
     constrained_delaunay,
     flood_fill,
     improve_by_flips,
+    interface_sides,
     orient_ccw,
 )
 
-_CHUNK = 2048  # fixed batch of the jitted level-set kernel: one compilation per inclusion
+_CHUNK = 512  # fixed batch of the jitted level-set kernel: one compilation per level-set structure
 
 
 @dataclass(frozen=True)
@@ -75,7 +77,7 @@ class Mesh2DConfig:
     min_loop_segments: int = 6
     interior: str = "auto"
     jitter: float = 1e-3
-    newton_iterations: int = 12
+    newton_iterations: int = 20
     split_rounds: int = 12
     relax: bool = True
     slide_box_nodes: bool = True
@@ -98,25 +100,41 @@ class Mesh2DConfig:
 
 
 # ----------------------------------------------------------------------------- JAX level-set kernels
-def _project_kernel(phi_fn, points, free, n_iter):
-    """Newton along the (free part of the) gradient onto phi = 0; returns (points, phi before, phi after)."""
-    vg = jax.vmap(jax.value_and_grad(lambda x: phi_fn(x[None, :])[0]))
+@functools.partial(jax.jit, static_argnums=0)
+def _project_kernel(jaxpr, consts, points, free, n_iter, tol):
+    """Newton along the (free part of the) gradient onto phi = 0, at most n_iter steps, until
+    max |phi| <= tol; returns (points, phi before, phi after).
 
-    def step(_, p):
+    The level set arrives as a jaxpr of x (2,) -> phi plus its constants: inclusions whose
+    jaxprs print the same (e.g. all ellipses, whatever their parameters) share one compilation."""
+    phi = lambda x: jax.core.eval_jaxpr(jaxpr, consts, x)[0]  # noqa: E731
+    vg = jax.vmap(jax.value_and_grad(phi))
+
+    def body(carry):
+        i, p, _ = carry
         v, g = vg(p)
         g = g * free
-        return p - (v / jnp.maximum(jnp.sum(g * g, axis=1), 1e-300))[:, None] * g
+        p = p - (v / jnp.maximum(jnp.sum(g * g, axis=1), 1e-300))[:, None] * g
+        return i + 1, p, jnp.max(jnp.abs(v) * jnp.any(free != 0, axis=1))
 
-    out = jax.lax.fori_loop(0, n_iter, step, points)
-    return out, phi_fn(points), phi_fn(out)
+    _, out, _ = jax.lax.while_loop(lambda c: (c[0] < n_iter) & (c[2] > tol), body, (0, points, jnp.inf))
+    return out, jax.vmap(phi)(points), jax.vmap(phi)(out)
+
+
+_STRUCTURES: dict[str, object] = {}  # printed jaxpr -> the one representative that gets compiled
 
 
 class _LevelSet:
-    """One inclusion's level set seen from NumPy: values and projection, one jit per inclusion."""
+    """One inclusion's level set seen from NumPy: values and Newton projection in fixed-size chunks."""
 
-    def __init__(self, phi_fn, n_iter: int):
+    def __init__(self, phi_fn, n_iter: int, scale: float):
         self.n_iter = n_iter
-        self._kernel = jax.jit(lambda p, f, k: _project_kernel(phi_fn, p, f, k))
+        self.tol = 100.0 * float(jnp.finfo(jnp.result_type(float)).eps) * scale
+        closed = jax.make_jaxpr(lambda x: phi_fn(x[None, :])[0])(jnp.zeros(2))
+        if len(_STRUCTURES) > 256:
+            _STRUCTURES.clear()
+        self._jaxpr = _STRUCTURES.setdefault(str(closed.jaxpr), closed.jaxpr)
+        self._consts = closed.consts
 
     def _run(self, points, free, n_iter):
         points = np.asarray(points, dtype=float).reshape(-1, 2)
@@ -129,7 +147,7 @@ class _LevelSet:
             f = np.zeros((_CHUNK, 2))
             p[: e - s], f[: e - s] = points[s:e], free[s:e]
             p[e - s:] = points[s]  # padding rows: a valid point, frozen
-            res = self._kernel(jnp.asarray(p), jnp.asarray(f), n_iter)
+            res = _project_kernel(self._jaxpr, self._consts, jnp.asarray(p), jnp.asarray(f), n_iter, self.tol)
             for o, r in zip(outs, res):
                 o[s:e] = np.asarray(r)[: e - s]
         return outs
@@ -217,6 +235,7 @@ def _interfaces(ms, levels, size: _Size, cfg: Mesh2DConfig) -> tuple[PSLG, dict]
         origin, shape = window_grid(lo, hi, step, 2 * grid_step + 3 * step, box)
         ij = np.stack(np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij"), -1).reshape(-1, 2)
         values = lvl.values(origin + ij * step).reshape(tuple(shape))
+        mine = []
         for loop in extract_loops(values, origin, step, inc.id):
             def refine(p, ax, lvl=lvl):
                 return lvl.project(p, free=np.eye(2)[1 - np.asarray(ax)])[0]
@@ -227,18 +246,24 @@ def _interfaces(ms, levels, size: _Size, cfg: Mesh2DConfig) -> tuple[PSLG, dict]
             for arc in pieces:
                 if arc.closed:
                     nodes = resample_polyline(arc.points, True, size.np_fn, cfg.min_loop_segments)
-                    nodes, res = lvl.project(nodes)
-                    arcs.append(Arc(inc.id, _inside(nodes, box), True))
+                    mine.append(Arc(inc.id, nodes, True))
                 else:
                     same_line = cross[arc.start[0]].axis == cross[arc.end[0]].axis and arc.start[1] == arc.end[1]
                     nodes = resample_polyline(arc.points, False, size.np_fn, 2 if same_line else 1)
-                    res = np.zeros(1)
-                    if len(nodes) > 2:
-                        nodes[1:-1], res = lvl.project(nodes[1:-1])
-                        nodes[1:-1] = _inside(nodes[1:-1], box)
                     s, e = (arc.start[0] + off, arc.start[1]), (arc.end[0] + off, arc.end[1])
-                    arcs.append(Arc(inc.id, nodes, False, s, e))
-                residual = max(residual, float(np.max(res, initial=0.0)))
+                    mine.append(Arc(inc.id, nodes, False, s, e))
+        # one projection call for every free node of this inclusion (open arcs keep their crossings)
+        free = [np.arange(len(a.points)) if a.closed else np.arange(1, len(a.points) - 1) for a in mine]
+        stacked = np.concatenate([a.points[f] for a, f in zip(mine, free)])
+        if len(stacked):
+            projected, res = lvl.project(stacked)
+            projected = _inside(projected, box)
+            residual = max(residual, float(res.max()))
+            at = 0
+            for a, f in zip(mine, free):
+                a.points[f] = projected[at : at + len(f)]
+                at += len(f)
+        arcs.extend(mine)
     pslg = assemble_pslg(arcs, crossings, box, size.np_fn)
     return pslg, {"n_crossings": len(crossings), "n_arcs": len(arcs), "projection_residual": residual}
 
@@ -287,11 +312,9 @@ def _interior_nodes(ms, pslg: PSLG, size: _Size, cfg: Mesh2DConfig, rng) -> np.n
             pts = pts[rng.uniform(size=len(pts)) < (h0 / size.np_fn(pts)) ** 2]
     hp = size.np_fn(pts)
     pts = pts + cfg.jitter * hp[:, None] * rng.standard_normal(pts.shape)
-    keep_dist = cfg.removal_fraction * hp
-    keep = np.all((pts > keep_dist[:, None]) & (pts < box - keep_dist[:, None]), axis=1)
-    keep &= np.abs(np.asarray(ms.phi(pts), dtype=float)) > keep_dist
-    d, _ = cKDTree(pslg.points).query(pts)
-    keep &= d > keep_dist
+    # interfaces and box edges are both segments of the PSLG: one distance test for all
+    dist = distance_to_segments(pts, pslg.points, pslg.segments, 0.1 * size.h_min)
+    keep = (dist > cfg.removal_fraction * hp) & np.all((pts > 0) & (pts < box), axis=1)
     return pts[keep]
 
 
@@ -326,18 +349,19 @@ def _relax(points, pslg: PSLG, size: _Size, cfg: Mesh2DConfig):
     return out, info
 
 
-def _labels(ms, points, tri, segments) -> np.ndarray:
-    """Inclusion id per triangle: flood fill across free edges, majority of the field per component."""
-    n_comp, comp = flood_fill(tri, segments, len(points))
-    cent = points[tri].mean(axis=1)
-    votes = np.asarray(ms.label(cent), dtype=np.int64)
-    weight = np.abs(np.asarray(ms.phi(cent), dtype=float)) + 1e-12
-    lab = component_labels(comp, votes, weight)
-    # a component holding two inclusions means an interface is missing
-    foreign = (votes != lab[comp]) & (votes > 0) & (lab[comp] > 0)
-    share = np.bincount(comp, weights=weight * foreign, minlength=n_comp) / np.bincount(comp, weights=weight)
-    if np.any(share > 0.2):
-        bad = int(np.argmax(share))
+def _labels(levels, points, tri, pslg: PSLG) -> np.ndarray:
+    """Inclusion id per triangle: flood fill across free edges; each component is voted on by the
+    triangles along its interface segments, inside (phi < 0) or outside the segment's own inclusion."""
+    n_comp, comp = flood_fill(tri, pslg.segments, len(points))
+    t, inc = interface_sides(tri, pslg.segments, pslg.segment_inclusion, len(points))
+    cent = points[tri[t]].mean(axis=1)
+    phi = np.empty(len(t))
+    for i in np.unique(inc):
+        sel = inc == i
+        phi[sel] = levels[int(i)].values(cent[sel])
+    lab, dissent = component_labels(comp[t], np.where(phi < 0, inc, 0), np.abs(phi) + 1e-300, n_comp)
+    if np.any(dissent > 0.2):
+        bad = int(np.argmax(dissent))
         raise MeshingError("labels", f"a region mixes inclusions (component {bad}); an interface is not closed",
                            int(lab[bad]))
     return lab[comp]
@@ -393,7 +417,7 @@ def mesh_2d(
     rng = np.random.default_rng(seed)
     box = np.asarray(ms.box, dtype=float)
     lap("size")
-    levels = {inc.id: _LevelSet(inc.phi_fn, cfg.newton_iterations) for inc in ms.inclusions}
+    levels = {inc.id: _LevelSet(inc.phi_fn, cfg.newton_iterations, float(box.max())) for inc in ms.inclusions}
     pslg, info = _interfaces(ms, levels, size, cfg)
     lap("interfaces_and_box")
     interior = _interior_nodes(ms, pslg, size, cfg, rng)
@@ -409,7 +433,7 @@ def mesh_2d(
     tri, n_flips = improve_by_flips(points, tri, pslg.segments, max_rounds=cfg.flip_rounds)
     tri = orient_ccw(points, tri)
     lap("flips")
-    inclusion_id = _labels(ms, points, tri, pslg.segments)
+    inclusion_id = _labels(levels, points, tri, pslg)
     lap("labels")
     metadata = {
         "mesher": "mesh_2d",

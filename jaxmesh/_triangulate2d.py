@@ -409,24 +409,70 @@ def flood_fill(triangles: np.ndarray, segments: np.ndarray, n_points: int) -> tu
     return connected_components(graph, directed=False)
 
 
-def component_labels(component: np.ndarray, votes: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-    """Majority label of every component.
+def component_labels(
+    component: np.ndarray, votes: np.ndarray, weights: np.ndarray | None = None, n_components: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted majority label of every component.
 
     Args:
-        component: (m,) component id per triangle. votes: (m,) int label per triangle (e.g. the
-            field's label at the centroid). weights: (m,) optional vote weights (e.g. |phi| at
-            the centroid, so that triangles deep inside a region count most).
+        component: (v,) component id of each vote. votes: (v,) int labels. weights: (v,) optional
+            weights. n_components: number of components (default: max id + 1).
     Returns:
-        (n_components,) int64 label per component.
+        (labels (n_components,) int64: 0 where a component got no vote,
+        dissent (n_components,): weight share of votes for another non-zero label than the winner).
     """
     component = np.asarray(component, np.int64)
     votes = np.asarray(votes, np.int64)
     w = np.ones(len(votes)) if weights is None else np.asarray(weights, dtype=float)
-    labels, inv = np.unique(votes, return_inverse=True)
-    n_comp = int(component.max()) + 1 if component.size else 0
+    n_comp = (int(component.max()) + 1 if component.size else 0) if n_components is None else int(n_components)
+    labels, inv = np.unique(np.concatenate([[0], votes]), return_inverse=True)
     tally = np.zeros((n_comp, len(labels)))
-    np.add.at(tally, (component, inv), w)
-    return labels[np.argmax(tally, axis=1)]
+    np.add.at(tally, (component, inv[1:]), w)
+    best = np.argmax(tally, axis=1)
+    total = tally.sum(axis=1)
+    other = tally.copy()
+    other[np.arange(n_comp), best] = 0.0
+    other[:, labels == 0] = 0.0
+    dissent = np.divide(other.sum(axis=1), total, out=np.zeros(n_comp), where=total > 0)
+    return labels[best], dissent
+
+
+def interface_sides(triangles: np.ndarray, segments: np.ndarray, segment_inclusion: np.ndarray, n_points: int):
+    """The two triangles along every interface segment, with the segment's inclusion id.
+
+    Returns:
+        (triangle (2e,), inclusion_id (2e,)): each triangle bordering an interface, once per border.
+    """
+    iface = segment_inclusion > 0
+    keys = edge_keys(segments[iface, 0], segments[iface, 1], n_points)
+    inc_of = dict(zip(keys.tolist(), segment_inclusion[iface].tolist()))
+    _, _, _, _, t1, t2, key = interior_edges(triangles, n_points)
+    hit = np.isin(key, keys)
+    inc = np.array([inc_of[k] for k in key[hit].tolist()], dtype=np.int64)
+    return np.concatenate([t1[hit], t2[hit]]), np.concatenate([inc, inc])
+
+
+def distance_to_segments(points: np.ndarray, nodes: np.ndarray, segments: np.ndarray, resolution: float) -> np.ndarray:
+    """Distance from points to the union of segments, exact to the segment nearest to a sample.
+
+    Samples every segment every ``resolution`` (KD-tree), then measures the exact distance to the
+    segment of the nearest sample: the error is at most resolution / 2.
+
+    Args:
+        points: (m, 2). nodes: (n, 2). segments: (s, 2). resolution: sample spacing.
+    Returns:
+        (m,) distances.
+    """
+    a, b = nodes[segments[:, 0]], nodes[segments[:, 1]]
+    k = np.maximum(1, np.ceil(np.linalg.norm(b - a, axis=1) / resolution).astype(np.int64))
+    sid = np.repeat(np.arange(len(segments)), k)
+    t = (np.arange(k.sum()) - np.repeat(np.cumsum(k) - k, k) + 0.5) / np.repeat(k, k)
+    samples = a[sid] + t[:, None] * (b - a)[sid]
+    _, near = cKDTree(samples).query(points)
+    s = sid[near]
+    ab = b[s] - a[s]
+    u = np.clip(np.sum((points - a[s]) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-300), 0.0, 1.0)
+    return np.linalg.norm(points - (a[s] + u[:, None] * ab), axis=1)
 
 
 # ----------------------------------------------------------------------------- quality flips
