@@ -1,0 +1,512 @@
+"""Periodic connected components and per-inclusion windows of a grid (NumPy/SciPy only, no jax).
+
+A *window* is a box of grid nodes around one inclusion, in unwrapped index coordinates (node u of
+the window is grid node u mod n when periodic). It holds the inclusion's own level set: accurate
+inside its *core* (the inclusion's index arc plus a few steps), padded by a few more steps so that
+the periodic B-spline prefilter of the window does not feel the window's own wrap-around. An axis
+whose window would reach the grid size becomes a *full* axis: the whole periodic axis, centred on
+the inclusion.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+
+
+@dataclass(frozen=True)
+class Window:
+    """Node box of one inclusion: window node u (unwrapped) is grid node u mod n.
+
+    origin: (d,) int, unwrapped index of window node 0; shape: nodes per axis; core_lo/core_hi: (d,)
+    local indices of the first/last core node; full: (d,) bool, the axis spans the periodic axis.
+    """
+
+    origin: np.ndarray
+    shape: tuple[int, ...]
+    core_lo: np.ndarray
+    core_hi: np.ndarray
+    full: np.ndarray
+
+
+def label_components(mask: np.ndarray, periodic: bool) -> tuple[np.ndarray, int]:
+    """Face-connected components of a boolean grid, merged across opposite faces when periodic.
+
+    A component crossing a face, edge or corner of the periodic cell is counted once.
+
+    Args:
+        mask: (*shape) bool.
+        periodic: merge labels that touch through opposite faces.
+
+    Returns:
+        labels (*shape) int32 (0 = background, 1..n in raster order of first node) and n.
+    """
+    labels, n = ndimage.label(mask)
+    labels = labels.astype(np.int32)
+    if n == 0 or not periodic:
+        return labels, int(n)
+    pairs = []
+    for axis in range(mask.ndim):
+        a = np.take(labels, 0, axis=axis).ravel()
+        b = np.take(labels, -1, axis=axis).ravel()
+        both = (a > 0) & (b > 0)
+        pairs.append(np.stack([a[both], b[both]]))
+    pairs = np.concatenate(pairs, axis=1) - 1
+    graph = coo_matrix((np.ones(pairs.shape[1]), (pairs[0], pairs[1])), shape=(n, n))
+    n_merged, comp = connected_components(graph, directed=False)
+    first = np.full(n_merged, n)
+    np.minimum.at(first, comp, np.arange(n))  # keep raster order of first appearance
+    rank = np.argsort(np.argsort(first))
+    lut = np.concatenate([[0], rank[comp] + 1]).astype(np.int32)
+    return lut[labels], int(n_merged)
+
+
+def _arc(occupied: np.ndarray, periodic: bool) -> tuple[int, int]:
+    """(start, length) of the smallest (circular if periodic) index interval covering occupied."""
+    n = occupied.size
+    pos = np.flatnonzero(occupied)
+    if not periodic:
+        return int(pos[0]), int(pos[-1] - pos[0] + 1)
+    if pos.size == n:
+        return 0, n
+    gaps = np.diff(np.concatenate([pos, [pos[0] + n]]))  # gap after each occupied index
+    g = int(np.argmax(gaps))
+    start = int(pos[(g + 1) % pos.size])
+    length = n - int(gaps[g]) + 1
+    if start + (length - 1) / 2 >= n:  # arc centre in [0, n)
+        start -= n
+    return start, length
+
+
+def component_arcs(labels: np.ndarray, n: int, periodic: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Per component and axis the covered index arc (unwrapped start, arc centre in [0, n_axis)).
+
+    Returns:
+        starts (n, d) int and lengths (n, d) int; length == n_axis means the component spans
+        (percolates through) that periodic axis.
+    """
+    shape = labels.shape
+    flat = labels.ravel()
+    where = np.flatnonzero(flat)
+    ids = flat[where] - 1
+    coords = np.unravel_index(where, shape)
+    starts = np.zeros((n, len(shape)), np.int64)
+    lengths = np.zeros((n, len(shape)), np.int64)
+    for k, size in enumerate(shape):
+        occupied = np.zeros((n, size), bool)
+        occupied[ids, coords[k]] = True
+        for c in range(n):
+            starts[c, k], lengths[c, k] = _arc(occupied[c], periodic)
+    return starts, lengths
+
+
+def _bucket(w: int) -> int:
+    """Round a window length up to 2^k or 3*2^(k-1) (few distinct shapes -> few compilations)."""
+    b = 8
+    while b < w:
+        b = b * 3 // 2 if (b & (b - 1)) == 0 else b * 4 // 3
+    return b
+
+
+def make_window(start, length, grid_shape, periodic: bool, core_pad: int, spline_pad: int) -> Window:
+    """Window around the index arc [start, start + length) of one inclusion (per axis arrays)."""
+    origin, shape, lo, hi, full = [], [], [], [], []
+    for s, m, n in zip(start, length, grid_shape):
+        need = int(m) + 2 * (core_pad + spline_pad)
+        w = _bucket(need)
+        if periodic and w >= n:
+            origin.append(int(s) - (n - int(m)) // 2)
+            shape.append(n)
+            lo.append(0)
+            hi.append(n - 1)
+            full.append(True)
+            continue
+        extra = w - need
+        origin.append(int(s) - core_pad - spline_pad - extra // 2)
+        shape.append(w)
+        lo.append(spline_pad)
+        hi.append(w - 1 - spline_pad)
+        full.append(False)
+    return Window(np.array(origin), tuple(shape), np.array(lo), np.array(hi), np.array(full))
+
+
+def frame_indices(origin, shape, grid_shape, periodic: bool) -> list[np.ndarray]:
+    """Grid node indices of a box of nodes: wrapped when periodic, else clamped (edge replicate)."""
+    idx = []
+    for o, w, n in zip(origin, shape, grid_shape):
+        u = int(o) + np.arange(w)
+        idx.append(u % n if periodic else np.clip(u, 0, n - 1))
+    return idx
+
+
+def take(array: np.ndarray, indices: list[np.ndarray]) -> np.ndarray:
+    """array at the outer product of per-axis node indices."""
+    return array[np.ix_(*indices)]
+
+
+def edt(mask: np.ndarray, spacing, full=None) -> np.ndarray:
+    """Distance from every node to the nearest True node (scipy EDT), periodic along `full` axes."""
+    full = [False] * mask.ndim if full is None else full
+    pad = [(w // 2, w // 2) if f else (0, 0) for w, f in zip(mask.shape, full)]
+    padded = np.pad(~mask, pad, mode="wrap") if any(p[0] for p in pad) else ~mask
+    dist = ndimage.distance_transform_edt(padded, sampling=spacing)
+    return dist[tuple(slice(p[0], p[0] + w) for p, w in zip(pad, mask.shape))]
+
+
+def nearest_component(labels: np.ndarray, spacing, periodic: bool, pad: int):
+    """Distance to, and label of, the nearest component node of every grid node (periodic via a wrap
+    pad of `pad` nodes: exact wherever the nearest component is within `pad` steps)."""
+    widths = [(min(pad, n // 2),) * 2 if periodic else (0, 0) for n in labels.shape]
+    lab = np.pad(labels, widths, mode="wrap") if periodic else labels
+    dist, idx = ndimage.distance_transform_edt(lab == 0, sampling=spacing, return_indices=True)
+    near = lab[tuple(idx)]
+    crop = tuple(slice(w[0], w[0] + n) for w, n in zip(widths, labels.shape))
+    return dist[crop], near[crop]
+
+
+_EXACT_STEPS = 10  # nodes this close to an inclusion get their distance from its surface points
+
+
+def surface_tree(field: np.ndarray, own: np.ndarray, spacing, full) -> cKDTree:
+    """KD-tree of the linear zero crossings on the grid edges leaving own (window coordinates,
+    index * spacing), with copies shifted by one window along full (periodic) axes."""
+    pts = []
+    for k in range(own.ndim):
+        for step in (1, -1):
+            nb_own, nb_val = np.roll(own, -step, axis=k), np.roll(field, -step, axis=k)
+            edge = own & ~nb_own
+            v, vn = field[edge], nb_val[edge]
+            t = np.clip(v / np.minimum(v - vn, -1e-300), 0.0, 1.0)
+            where = np.stack(np.nonzero(edge), axis=-1).astype(float)
+            where[:, k] += step * t
+            pts.append(where)
+    pts = np.concatenate(pts) * np.asarray(spacing)
+    for k in np.flatnonzero(full):
+        shift = np.zeros(own.ndim)
+        shift[k] = own.shape[k] * spacing[k]
+        pts = np.concatenate([pts - shift, pts, pts + shift])
+    return cKDTree(pts)
+
+
+def outside_distance(tree: cKDTree, coords: np.ndarray, d_nodes: np.ndarray, spacing) -> np.ndarray:
+    """Distance outside an inclusion: to its surface points where the node distance d_nodes (EDT to
+    its nodes) is within _EXACT_STEPS steps, else d_nodes - h/2 (a staircase estimate, +-h/2)."""
+    h = min(spacing)
+    out = d_nodes - 0.5 * h
+    close = d_nodes <= _EXACT_STEPS * max(spacing)
+    if close.any():
+        out[close] = tree.query(coords[close])[0]
+    return np.maximum(out, 1e-3 * h)  # outside: strictly positive
+
+
+def levelset_window_field(values, own, nearest, cid: int, spacing, full) -> np.ndarray:
+    """Own level set of component cid on its window, rebuilt from the global field.
+
+    The input values are kept inside the component, at its outside face neighbours, and at the
+    non-negative nodes closer to it than to any other component, so the zero set near the
+    inclusion is the input's; elsewhere (other inclusions included) the distance to its surface,
+    so the field is positive on every other inclusion and |grad| ~ 1.
+    """
+    rim = ndimage.binary_dilation(own) & ~own  # outside face neighbours: non-negative by construction
+    keep = own | rim | ((values >= 0) & (nearest == cid))
+    out = values.copy()
+    if (~keep).any():
+        tree = surface_tree(np.where(own | rim, values, 1.0), own, spacing, full)
+        coords = np.stack(np.nonzero(~keep), axis=-1) * np.asarray(spacing)
+        out[~keep] = outside_distance(tree, coords, edt(own, spacing, full)[~keep], spacing)
+    return out
+
+
+def labels_window_field(own, spacing, full, sigma: float = 0.75) -> np.ndarray:
+    """Signed distance of a voxel set with the interface half a step from its nodes, Gaussian-smoothed
+    (sigma in steps) so the cubic interpolant does not ring on the staircase, then shifted by a
+    constant so that its volume (smoothed Heaviside clip(1/2 - phi/h, 0, 1)) is the voxel count
+    (smoothing alone shrinks convex shapes); node signs are kept (own < 0 < others)."""
+    h = min(spacing)
+    inside = edt(~own, spacing, full)  # own node -> nearest non-own node
+    outside = edt(own, spacing, full)  # non-own node -> nearest own node
+    phi = np.where(own, 0.5 * h - inside, outside - 0.5 * h)
+    phi = ndimage.gaussian_filter(phi, sigma=sigma, mode=["wrap" if f else "nearest" for f in full])
+    target, lo, hi = own.sum(), -2.0 * h, 2.0 * h
+    near = phi[np.abs(phi) < 4 * h]  # only these change the volume for |shift| < 2h
+    for _ in range(50):  # bisection: the volume decreases monotonically with the shift
+        mid = 0.5 * (lo + hi)
+        vol = np.clip(0.5 - (near + mid) / h, 0.0, 1.0).sum() + (phi <= -4 * h).sum()
+        lo, hi = (mid, hi) if vol > target else (lo, mid)
+    phi = phi + 0.5 * (lo + hi)
+    eps = 0.05 * h
+    return np.where(own, np.minimum(phi, -eps), np.maximum(phi, eps))
+
+
+def crossing_bounds(field: np.ndarray, own: np.ndarray, full) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned bounds of own's zero set in local fractional indices, from the linear crossings
+    between own nodes (negative) and their outside neighbours along each axis."""
+    lo, hi = np.zeros(field.ndim), np.zeros(field.ndim)
+    for k in range(field.ndim):
+        lo[k], hi[k] = np.inf, -np.inf
+        for step, sign in ((1, -1.0), (-1, 1.0)):
+            nb_own = np.roll(own, step, axis=k)
+            nb_val = np.roll(field, step, axis=k)
+            edge = own & ~nb_own
+            if not full[k]:  # no wrap-around neighbour at the window ends
+                first = [slice(None)] * field.ndim
+                first[k] = 0 if step == 1 else -1
+                edge[tuple(first)] = False
+            v, vn = field[edge], nb_val[edge]
+            frac = np.where(vn > v, v / np.minimum(v - vn, -1e-300), 0.0)
+            pos = np.nonzero(edge)[k] + sign * np.clip(frac, 0.0, 1.0)
+            if pos.size:
+                lo[k], hi[k] = min(lo[k], pos.min()), max(hi[k], pos.max())
+        if not np.isfinite(lo[k]):  # own fills every line along k (percolating)
+            lo[k], hi[k] = -0.5, field.shape[k] - 0.5
+    return lo, hi
+
+
+def chord_thickness(field: np.ndarray, own: np.ndarray) -> float:
+    """Thickness of a component in grid steps: the largest, over its nodes, of the shortest of the
+    axis-parallel chords through the node (chord ends at the linear zero crossings). Window axes
+    are treated as periodic; a chord with no outside node is infinite."""
+    best = np.full(own.shape, np.inf)
+    for k in range(own.ndim):
+        m = np.moveaxis(own, k, -1)
+        v = np.moveaxis(field, k, -1)
+        w = m.shape[-1]
+        m2 = np.concatenate([m, m], axis=-1)
+        pos = np.arange(2 * w)
+        last_out = np.maximum.accumulate(np.where(~m2, pos, -1), axis=-1)[..., w:] - w
+        rev = np.where(~m2, pos, 4 * w)[..., ::-1]
+        next_out = np.minimum.accumulate(rev, axis=-1)[..., ::-1][..., :w]
+        closed = last_out >= -w  # the line has an outside node
+        pn = np.where(closed, last_out, 0)
+        en = np.where(closed, next_out, 1)
+
+        def at(i):
+            return np.take_along_axis(v, i % w, axis=-1)
+
+        vp, v1, v2, ve = at(pn), at(pn + 1), at(en - 1), at(en)
+        lo = pn + 1 - np.clip(v1 / np.minimum(v1 - vp, -1e-300), 0.0, 1.0)
+        hi = en - 1 + np.clip(v2 / np.minimum(v2 - ve, -1e-300), 0.0, 1.0)
+        chord = np.where(closed, hi - lo, np.inf)
+        best = np.minimum(best, np.moveaxis(chord, -1, k))
+    return float(best[own].max()) if own.any() else 0.0
+
+
+def periodicity_ratios(values: np.ndarray) -> list[tuple[float, float]]:
+    """Per axis: (mean wrap-around jump |phi[0] - phi[n-1]|, largest mean jump between neighbouring
+    interior slices). A periodic field's wrap slice is like any other slice."""
+    out = []
+    for k in range(values.ndim):
+        axes = tuple(a for a in range(values.ndim) if a != k)
+        interior = np.abs(np.diff(values, axis=k)).mean(axis=axes)
+        wrap = np.abs(np.take(values, 0, axis=k) - np.take(values, -1, axis=k)).mean()
+        out.append((float(wrap), float(interior.max())))
+    return out
+
+
+def touching_label_pairs(labels: np.ndarray, periodic: bool) -> np.ndarray:
+    """(p, 2) sorted unique pairs of different positive labels that share a grid face."""
+    pairs = []
+    for k in range(labels.ndim):
+        if periodic:
+            a, b = labels, np.roll(labels, -1, axis=k)
+        else:
+            a, b = np.delete(labels, -1, axis=k), np.delete(labels, 0, axis=k)
+        t = (a > 0) & (b > 0) & (a != b)
+        pairs.append(np.sort(np.stack([a[t], b[t]], axis=-1), axis=-1))
+    pairs = np.concatenate(pairs)
+    return np.unique(pairs, axis=0) if pairs.size else pairs.reshape(0, 2)
+
+
+def frame_values(W: np.ndarray, win: Window, own: np.ndarray, frame_origin, spacing, tree) -> np.ndarray:
+    """An inclusion's level set on a frame (unwrapped node box): its window values inside the core
+    (= its phi_fn at those nodes), outside_distance beyond (more accurate than the phi_fn's clamped
+    extension, which only needs to stay positive). tree: surface_tree of the window."""
+    dst, src, local = [], [], []
+    for k in range(W.ndim):
+        u = int(frame_origin[k]) + np.arange(own.shape[k]) - int(win.origin[k])
+        local.append((u % W.shape[k] if win.full[k] else u) * spacing[k])
+        if win.full[k]:
+            dst.append(np.arange(own.shape[k]))
+            src.append(u % W.shape[k])
+        else:
+            inside = (u >= win.core_lo[k]) & (u <= win.core_hi[k])
+            dst.append(np.flatnonzero(inside))
+            src.append(u[inside])
+    d_nodes = edt(own, spacing)
+    coords = np.stack(np.meshgrid(*local, indexing="ij"), axis=-1)
+    vals = np.empty(own.shape)
+    vals[...] = outside_distance(tree, coords.reshape(-1, W.ndim), d_nodes.ravel(), spacing).reshape(own.shape)
+    vals[np.ix_(*dst)] = W[np.ix_(*src)]
+    return vals
+
+
+def core_geometry(win: Window, k: int, spacing, shape) -> tuple[float, float]:
+    """Physical centre and half-width of the core along axis k (half = inf on a full axis)."""
+    h = spacing[k]
+    if win.full[k]:
+        return (win.origin[k] + shape[k] / 2) * h, np.inf
+    centre = (win.origin[k] + (win.core_lo[k] + win.core_hi[k]) / 2) * h
+    return centre, (win.core_hi[k] - win.core_lo[k]) / 2 * h
+
+
+def reach_frame(start, length, grid_shape, periodic: bool, r: float):
+    """Unwrapped node box within r steps of an index arc: (origin, shape); a periodic axis it would
+    cover becomes the whole axis centred on the arc, plus 2 nodes per end (fold duplicates)."""
+    origin, shape = [], []
+    for s, m, n in zip(start, length, grid_shape):
+        s, m = int(s), int(m)
+        if periodic and (not np.isfinite(r) or m + 2 * r >= n):
+            # the whole axis centred on the arc, 2 nodes more at each end so that nodes near the
+            # antipodal plane see both images (fold() keeps the smaller value)
+            origin.append(int(np.floor(s + (m - 1) / 2 - n / 2)) - 2)
+            shape.append(n + 4)
+        elif periodic:
+            origin.append(s - int(r))
+            shape.append(m + 2 * int(r))
+        else:
+            lo = max(0, s - int(min(r, n))) if np.isfinite(r) else 0
+            hi = min(n - 1, s + m - 1 + int(min(r, n))) if np.isfinite(r) else n - 1
+            origin.append(lo)
+            shape.append(hi - lo + 1)
+    return np.array(origin), tuple(shape)
+
+
+def choose_reach(lengths: np.ndarray, grid_shape, budget: int, r_min: int) -> float:
+    """Largest reach r (steps) with sum over inclusions of the reach-frame sizes <= budget; inf when
+    every inclusion can cover the whole grid."""
+    n = np.asarray(grid_shape)
+
+    def cost(r):
+        return np.prod(np.minimum(n, lengths + 2 * r), axis=1).sum()
+
+    if cost(int(n.max())) <= budget:
+        return np.inf
+    lo, hi = 0, int(n.max())
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        lo, hi = (mid, hi) if cost(mid) <= budget else (lo, mid - 1)
+    return float(max(lo, r_min))
+
+
+def accumulate(dn1, dn2, nearest, cid: int, indices, values) -> None:
+    """Fold one inclusion's values on a node box into the running first/second minima (in place).
+    A node present twice (frame longer than the axis) keeps its smaller value."""
+    indices = list(indices)
+    for k, (idx, n) in enumerate(zip(indices, dn1.shape)):
+        if len(idx) > n:
+            moved = np.moveaxis(values, k, 0)
+            folded = np.full((n,) + moved.shape[1:], np.inf)
+            np.minimum.at(folded, idx, moved)
+            values, indices[k] = np.moveaxis(folded, 0, k), np.arange(n)
+    sub = np.ix_(*indices)
+    a, b = dn1[sub], dn2[sub]
+    closer = values < a
+    dn2[sub] = np.where(closer, a, np.minimum(b, values))
+    dn1[sub] = np.where(closer, values, a)
+    nearest[sub] = np.where(closer, cid, nearest[sub])
+
+
+# ---- validation of raw inputs (NumPy only: runs before anything is traced) ----
+
+_MIN_SAMPLES, _MIN_THICKNESS = 8, 1.5  # a resolved feature: >= 8 nodes and >= 1.5 steps thick
+
+
+def check_field(values, where: str, labels: bool = False) -> np.ndarray:
+    """A 2D/3D finite real field (float64), or for labels a non-negative integer / bool image."""
+    try:
+        a = np.asarray(values)
+    except Exception as err:  # ragged lists, arbitrary objects
+        raise ValueError(f"{where} expected a numeric 2D or 3D array, got {type(values).__name__}. "
+                         "Hint: pass a NumPy array.") from err
+    if labels:
+        if a.dtype.kind not in "biu":
+            raise ValueError(f"{where} expected an integer or bool label image, got dtype {a.dtype}. "
+                             "Hint: cast with labels.astype(int), or use from_levelset for a level-set field.")
+    elif a.dtype.kind not in "iuf" or a.dtype == bool:
+        raise ValueError(f"{where} expected real level-set values, got dtype {a.dtype}. "
+                         "Hint: use from_labels for integer / bool label images.")
+    if a.ndim not in (2, 3) or min(a.shape) < 4:
+        raise ValueError(f"{where} expected a 2D or 3D array with at least 4 nodes per axis, got shape "
+                         f"{a.shape}. Hint: one array axis per spatial axis, axis 0 = x.")
+    if labels:
+        if a.dtype.kind == "i" and a.min() < 0:
+            raise ValueError(f"{where} expected labels >= 0 (0 = matrix), got minimum {a.min()}. "
+                             "Hint: shift or relabel the image.")
+        return a
+    a = a.astype(np.float64)
+    if not np.isfinite(a).all():
+        raise ValueError(f"{where} expected finite values, got {int(np.size(a) - np.isfinite(a).sum())} "
+                         "NaN/inf samples. Hint: fill them (e.g. with a large positive distance).")
+    return a
+
+
+def check_box(box, shape, where: str, allow_none: bool = True) -> tuple[float, ...]:
+    """Positive cell lengths, one per axis, giving equal spacing L_i / n_i (unit cube if None)."""
+    d = len(shape)
+    if box is None and allow_none:
+        box = (1.0,) * d
+    try:
+        b = np.asarray(box, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{where} expected box as {d} positive lengths, got {box!r}.") from err
+    if b.shape != (d,) or not np.isfinite(b).all() or (b <= 0).any():
+        raise ValueError(f"{where} expected box as {d} positive finite lengths (one per axis), got {box!r}. "
+                         f"Hint: e.g. box={(1.0,) * d}.")
+    h = b / np.asarray(shape)
+    if (h.max() - h.min()) > 1e-6 * h.max():
+        raise ValueError(f"{where} expected equal grid spacing L_i / n_i on every axis, got box "
+                         f"{tuple(b.tolist())} over shape {tuple(shape)}. Hint: pass "
+                         f"box={tuple(float(n * h.min()) for n in shape)}.")
+    return tuple(float(x) for x in b)
+
+
+def check_order(order) -> None:
+    if order not in ("linear", "cubic"):
+        raise ValueError(f"expected order 'cubic' or 'linear', got {order!r}. Hint: 'cubic' is C2 (curvatures).")
+
+
+def check_points(points, d: int, where: str) -> np.ndarray:
+    """Finite query points as float64 (m, d)."""
+    try:
+        p = np.asarray(points, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{where} expected points (m, {d}), got {type(points).__name__}.") from err
+    if p.ndim != 2 or p.shape[1] != d:
+        raise ValueError(f"{where} expected points of shape (m, {d}), got {p.shape}. "
+                         "Hint: one row per point, e.g. points.reshape(-1, d).")
+    if not np.isfinite(p).all():
+        raise ValueError(f"{where} expected finite points, got NaN/inf.")
+    return p
+
+
+def gradient_scale(values: np.ndarray, mask: np.ndarray, spacing) -> float:
+    """Median |grad phi| (central differences) at the nodes next to the interface: 1 for a distance."""
+    grad2 = sum(((np.roll(values, -1, k) - np.roll(values, 1, k)) / (2 * h)) ** 2
+                for k, h in enumerate(spacing))
+    edge = np.zeros_like(mask)
+    for k in range(values.ndim):
+        edge |= mask != np.roll(mask, 1, k)
+    g = np.sqrt(grad2[edge])
+    g = g[g > 0]
+    return float(np.median(g)) if g.size else 1.0
+
+
+def size_errors(stats, descriptions) -> str:
+    """Message listing inclusions not resolved by the grid ((count, thickness) per inclusion), or ''."""
+    bad = []
+    for i, ((count, thick), desc) in enumerate(zip(stats, descriptions), start=1):
+        if count < _MIN_SAMPLES or thick < _MIN_THICKNESS:
+            extra = f" (label {desc['label']})" if "label" in desc else ""
+            bad.append(f"inclusion {i}{extra}: {count} negative samples, {thick:.2f} steps thick")
+    if not bad:
+        return ""
+    return (f"expected every inclusion resolved by the grid (>= {_MIN_SAMPLES} negative samples, >= "
+            f"{_MIN_THICKNESS} grid steps thick), got {len(bad)} smaller: " + "; ".join(bad[:10])
+            + ". Hint: sample the field on a finer grid, or remove the specks "
+            "(e.g. skimage.morphology.remove_small_objects).")

@@ -1,0 +1,561 @@
+"""The Microstructure type: inclusions with their own periodic level sets, global DN1 / DN2 (paper 2.2).
+
+A scanned or generated field groups every inclusion in one level set; the paper's DN_k functions
+need one signed distance per inclusion (eq. 3: DN1 = min_i DS_i). Each inclusion therefore gets its
+own level set here: analytic (from_functions), or rebuilt on a window around it (from_levelset,
+from_labels; see _components.py), so that two inclusions one grid step apart stay two.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy import ndimage
+
+from .._periodic import image_shifts, minimum_image, wrap
+from . import _components as comp
+from ._components import check_box, check_field, check_order, check_points, gradient_scale, size_errors
+from ._grid import bspline_coefficients, interpolate_cubic, interpolate_linear
+
+_CORE_PAD = 3  # steps of accurate own level set around an inclusion's nodes
+_SPLINE_PAD = {"cubic": 4, "linear": 1}  # steps more: the window's wrap decays as 0.268^steps
+_BUDGET = 2**25  # grid nodes evaluated (over all inclusions) for dn1/dn2 before the reach is capped
+_PHI_MARGIN = 8  # steps: Microstructure.phi evaluates an inclusion within this of its bounds
+
+
+@dataclass(frozen=True, eq=False)
+class Inclusion:
+    """One inclusion: id (1..N, 0 is the matrix), its own periodic level set phi_fn (JAX, points
+    (m, d) -> (m,), negative inside, differentiable), axis-aligned bounds lower/upper (d,) in
+    unwrapped coordinates (may stick out of [0, L)), analytic volume (area in 2D) when known."""
+
+    id: int
+    phi_fn: Callable
+    lower: np.ndarray
+    upper: np.ndarray
+    volume: float | None = None
+    description: dict = field(default_factory=dict)
+
+
+def _window_phi(data, origin, center, half, box, window_box, points, *, cubic, periodic):
+    """Level set of one window: the B-spline (or multilinear) interpolant inside the core, and
+    outside it the value at the point clamped onto the core plus the distance to the core."""
+    points = jnp.asarray(points)
+    u = points - center
+    if periodic:
+        u = minimum_image(u, box)
+    uc = jnp.clip(u, -half, half)
+    sq = jnp.sum((u - uc) ** 2, axis=-1)
+    pos = sq > 0
+    excess = jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)  # safe sqrt: finite gradient
+    interp = interpolate_cubic if cubic else interpolate_linear
+    return interp(data, window_box, uc + (center - origin)) + excess
+
+
+# one object per variant, so that phi_fns (jax.tree_util.Partial) of equal shapes share compilations
+_KERNELS = {
+    (c, p): functools.partial(_window_phi, cubic=c, periodic=p) for c in (True, False) for p in (True, False)
+}
+_KERNEL_SET = frozenset(_KERNELS.values())
+
+
+class _Periodized:
+    """phi(x) = min over the 3^d image shifts of f(wrap(x) + shift): a periodic level set from an
+    SDF defined on R^d (wrap first, so points far outside the box are handled too)."""
+
+    def __init__(self, fn: Callable, box: tuple[float, ...]):
+        self.fn, self.box = fn, box
+        self.shifts = image_shifts(len(box), box)
+
+    def __call__(self, points):
+        points = jnp.asarray(points)
+        d = len(self.box)
+        lead, pts = points.shape[:-1], wrap(points.reshape(-1, d), jnp.asarray(self.box))
+        shifts = jnp.asarray(self.shifts, dtype=pts.dtype)
+        vals = jnp.reshape(self.fn((pts[None] + shifts[:, None]).reshape(-1, d)), (len(self.shifts), -1))
+        return jnp.min(vals, axis=0).reshape(lead)
+
+
+_apply = jax.jit(lambda fn, pts: fn(pts))  # fn: a Partial (PyTree): one compilation per kernel and shape
+
+
+def evaluate(phi_fn: Callable, points: np.ndarray, name: str | None = None, chunk: int = 2**15) -> np.ndarray:
+    """phi_fn at NumPy points (m, d) -> (m,) float64, in chunks padded to powers of two (few
+    compilations). With a name (user functions), failures and non-finite output raise ValueError."""
+    out = np.empty(len(points))
+    for start in range(0, len(points), chunk):
+        p = points[start : start + chunk]
+        k = len(p)
+        size = max(64, 1 << (k - 1).bit_length())
+        p = np.concatenate([p, np.repeat(p[-1:], size - k, axis=0)]) if size > k else p
+        try:
+            v = _apply(phi_fn, p) if isinstance(phi_fn, jax.tree_util.Partial) else phi_fn(jnp.asarray(p))
+            v = np.asarray(v, dtype=float)
+        except Exception as err:
+            if name is None:
+                raise
+            raise ValueError(f"from_functions: {name} failed on points of shape {p.shape}: {err}. Hint: each "
+                             "phi_fn maps points (m, d) to values (m,), e.g. jaxmesh sphere_sdf.") from err
+        if name is not None and (v.shape != (size,) or not np.isfinite(v).all()):
+            raise ValueError(f"from_functions expected {name} to return {size} finite values for points "
+                             f"({size}, d), got shape {v.shape} with {int(np.size(v) - np.isfinite(v).sum())} "
+                             "NaN/inf. Hint: return one finite signed distance per point.")
+        out[start : start + k] = v[:k]
+    return out
+
+
+def _grid_points(axes, spacing) -> np.ndarray:
+    mesh = np.meshgrid(*[a * h for a, h in zip(axes, spacing)], indexing="ij")
+    return np.stack(mesh, axis=-1).reshape(-1, len(axes))
+
+
+def function_bounds(f: Callable, i: int, shape, spacing):
+    """Bounds of {f < 0} sampled on the grid nodes of [-L, 2L)^d: coarse first (stride ~n/16,
+    candidates f < coarse cell diagonal), then every node around the candidates.
+
+    Returns:
+        lower, upper (d,) unwrapped, the number of negative nodes and the thickness in steps.
+    """
+    n = np.asarray(shape)
+    s = np.maximum(1, n // 16)
+    coarse = [np.arange(-nk, 2 * nk, sk) for nk, sk in zip(n, s)]
+    vals = evaluate(f, _grid_points(coarse, spacing), name=f"phi_fns[{i}]").reshape([len(a) for a in coarse])
+    cand = vals < (0.0 if (s == 1).all() else float(np.linalg.norm(s * spacing)))
+    if not cand.any():
+        raise ValueError(
+            f"from_functions expected phi_fns[{i}] to be negative somewhere on the grid, got min {vals.min():.4g} "
+            f"on nodes of [-L, 2L)^d. Hint: negative inside; an inclusion must span grid nodes (refine grid_shape)."
+        )
+    fine = []
+    for k in range(len(n)):
+        hit = np.flatnonzero(cand.any(axis=tuple(j for j in range(len(n)) if j != k)))
+        fine.append(np.arange(coarse[k][hit[0]] - s[k] - 1, coarse[k][hit[-1]] + s[k] + 2))
+    vals = evaluate(f, _grid_points(fine, spacing), name=f"phi_fns[{i}]").reshape([len(a) for a in fine])
+    own = vals < 0
+    if not own.any():
+        raise ValueError(f"from_functions expected phi_fns[{i}] to be negative on some grid node, got none "
+                         f"(min {vals.min():.4g}). Hint: the inclusion is smaller than a grid step: refine grid_shape.")
+    lo, hi = comp.crossing_bounds(vals, own, [False] * len(n))
+    origin = np.array([a[0] for a in fine])
+    return (origin + lo) * spacing, (origin + hi) * spacing, int(own.sum()), comp.chord_thickness(vals, own)
+
+
+class Microstructure:
+    """A periodic (or not) box holding a matrix (id 0) and inclusions 1..N, each with its own level set.
+
+    Attributes:
+        box: (d,) cell lengths; periodic: bool; inclusions: tuple of Inclusion (ids 1..N);
+        grid_shape: nodes per axis of the node-centred grid (node i at x = i * L / n).
+        dn1: (grid_shape) DN1 = min_i phi_i (eq. 3), signed, negative inside inclusions.
+        dn2: (grid_shape) distance to the second nearest inclusion, positive where inclusions are
+            separated. Exact up to `reach` from every inclusion, min(DN2, reach) beyond; with a
+            single inclusion it is half the box diagonal.
+        nearest_id: (grid_shape) int, id of the nearest inclusion.
+        reach: physical distance up to which dn1/dn2 are exact (inf: everywhere).
+
+    Example:
+        >>> ms = Microstructure.from_levelset(phi)                 # (n, n[, n]) samples, unit box
+        >>> ms.label(np.array([[0.5, 0.5, 0.5]])), ms.volume_fraction()
+    """
+
+    def __init__(self, box, periodic, inclusions, grid_shape, dn1, dn2, nearest_id, reach=np.inf):
+        self.box = tuple(float(b) for b in box)
+        self.periodic = bool(periodic)
+        self.inclusions = tuple(inclusions)
+        self.grid_shape = tuple(int(n) for n in grid_shape)
+        self.dn1, self.dn2, self.nearest_id = dn1, dn2, nearest_id
+        self.reach = float(reach)
+        if [inc.id for inc in self.inclusions] != list(range(1, len(self.inclusions) + 1)):
+            raise ValueError("Microstructure expected inclusion ids 1..N in order.")
+        for name, a in (("dn1", dn1), ("dn2", dn2), ("nearest_id", nearest_id)):
+            if np.shape(a) != self.grid_shape:
+                raise ValueError(f"Microstructure expected {name} of shape {self.grid_shape}, got {np.shape(a)}.")
+        self._global = None
+
+    def __repr__(self):
+        return (f"Microstructure(dim={self.dim}, box={self.box}, periodic={self.periodic}, "
+                f"inclusions={len(self.inclusions)}, grid_shape={self.grid_shape})")
+
+    @property
+    def dim(self) -> int:
+        """Spatial dimension (2 or 3)."""
+        return len(self.box)
+
+    @property
+    def spacing(self) -> tuple[float, ...]:
+        """Grid step per axis L_i / n_i."""
+        return tuple(L / n for L, n in zip(self.box, self.grid_shape))
+
+    def coordinates(self) -> np.ndarray:
+        """Grid node positions, (*grid_shape, d); node i sits at i * L / n."""
+        axes = [np.arange(n) * (L / n) for n, L in zip(self.grid_shape, self.box)]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+
+    def _bbox_distance(self, inc: Inclusion, pts: np.ndarray) -> np.ndarray:
+        """(m,) Euclidean (minimum-image) distance from points to the inclusion's bounds."""
+        centre, half = (inc.upper + inc.lower) / 2, (inc.upper - inc.lower) / 2
+        u = pts - centre
+        if self.periodic:
+            u = minimum_image(u, np.asarray(self.box))
+        return np.linalg.norm(np.maximum(np.abs(u) - half, 0.0), axis=-1)
+
+    def _inclusion(self, inclusion_id) -> Inclusion:
+        if not (isinstance(inclusion_id, (int, np.integer)) and 1 <= inclusion_id <= len(self.inclusions)):
+            raise ValueError(
+                f"expected an inclusion id in 1..{len(self.inclusions)}, got {inclusion_id!r}. "
+                "Hint: 0 is the matrix, which has no level set of its own."
+            )
+        return self.inclusions[int(inclusion_id) - 1]
+
+    def phi(self, points) -> np.ndarray:
+        """DN1 at points (m, d) -> (m,), NumPy: the min of the inclusions' phi_fn, each evaluated
+        where its (periodic) bounds + 8 grid steps reach. Exact (to the interpolation) within ~3
+        steps of the interfaces; farther, where phi_fn only continues distance-like, the dn1 grid
+        (multilinear, accurate to about half a step) is used when smaller."""
+        pts = check_points(points, self.dim, "Microstructure.phi")
+        h = max(self.spacing)
+        out = np.full(len(pts), np.inf)
+        for inc in self.inclusions:
+            near = self._bbox_distance(inc, pts) <= _PHI_MARGIN * h
+            if near.any():
+                out[near] = np.minimum(out[near], evaluate(inc.phi_fn, pts[near]))
+        far = out > _CORE_PAD * h
+        if far.any():
+            coords = (pts[far] / np.asarray(self.spacing)).T
+            mode = "grid-wrap" if self.periodic else "nearest"
+            out[far] = np.minimum(out[far], ndimage.map_coordinates(self.dn1, coords, order=1, mode=mode))
+        return out
+
+    def inclusion_phi(self, inclusion_id: int, points) -> np.ndarray:
+        """Level set of one inclusion at points (m, d) -> (m,), NumPy."""
+        inc = self._inclusion(inclusion_id)
+        return evaluate(inc.phi_fn, check_points(points, self.dim, "Microstructure.inclusion_phi"))
+
+    def label(self, points) -> np.ndarray:
+        """Inclusion id containing each point (m, d) -> (m,) int64; 0 = matrix."""
+        pts = check_points(points, self.dim, "Microstructure.label")
+        ids, best = np.zeros(len(pts), np.int64), np.zeros(len(pts))
+        for inc in self.inclusions:
+            near = self._bbox_distance(inc, pts) <= max(self.spacing)
+            if near.any():
+                v = evaluate(inc.phi_fn, pts[near])
+                win = v < best[near]
+                sel = np.flatnonzero(near)[win]
+                ids[sel], best[sel] = inc.id, v[win]
+        return ids
+
+    def global_phi_fn(self) -> Callable:
+        """JAX DN1 callable points (m, d) -> (m,): the min over every inclusion's phi_fn.
+
+        Window-based inclusions of equal window shape are stacked and folded with lax.scan, so the
+        cost is N interpolations per point at the memory of one. Jit-able, differentiable.
+        """
+        if self._global is None:
+            groups, others = {}, []
+            for inc in self.inclusions:
+                f = inc.phi_fn
+                if isinstance(f, jax.tree_util.Partial) and f.func in _KERNEL_SET:
+                    groups.setdefault((f.func, f.args[0].shape), []).append(f)
+                else:
+                    others.append(f)
+            stacks = [
+                (key[0], tuple(jnp.stack([f.args[i] for f in fs]) for i in range(4)), fs[0].args[4], fs[0].args[5])
+                for key, fs in groups.items()
+            ]
+
+            def dn1_fn(points):
+                points = jnp.asarray(points)
+                out = jnp.full(points.shape[:-1], jnp.inf, dtype=jnp.result_type(points.dtype, float))
+                for func, params, box, wbox in stacks:
+                    def body(carry, p, func=func, box=box, wbox=wbox):
+                        return jnp.minimum(carry, func(*p, box, wbox, points)), None
+
+                    out, _ = jax.lax.scan(body, out, params)
+                for f in others:
+                    out = jnp.minimum(out, f(points))
+                return out
+
+            self._global = dn1_fn
+        return self._global
+
+    def volume_fraction(self) -> float:
+        """Inclusion volume fraction: analytic when every inclusion's volume is known, else from the
+        dn1 grid with a linear smoothed Heaviside clip(1/2 - dn1/h, 0, 1) (unbiased for a plane)."""
+        if self.inclusions and all(inc.volume is not None for inc in self.inclusions):
+            return float(sum(inc.volume for inc in self.inclusions) / np.prod(self.box))
+        h = float(np.mean(self.spacing))
+        return float(np.clip(0.5 - self.dn1 / h, 0.0, 1.0).mean())
+
+    @classmethod
+    def from_levelset(cls, values, box=None, periodic=True, order="cubic", *, reach=None) -> Microstructure:
+        """Inclusions = periodic connected components of {phi < 0} of one global field.
+
+        Args:
+            values: (nx, ny[, nz]) real samples on the node-centred grid, negative inside. Fields
+                that are not distance-like (|grad| far from 1, e.g. scan intensities) are rescaled
+                by their median gradient near the interface (zero set unchanged).
+            box: (d,) cell lengths, equal spacing L_i / n_i; None: unit cube.
+            periodic: the field is periodic (checked: a wrap-around jump of many steps is an error).
+            order: "cubic" (C2 B-spline) or "linear" interpolation of each inclusion's window.
+            reach: distance up to which dn1/dn2 are exact; None: everywhere if affordable.
+
+        Returns:
+            The Microstructure; each inclusion's description holds n_samples and thickness (steps).
+        """
+        v = check_field(values, "from_levelset")
+        shape, d = v.shape, v.ndim
+        box = check_box(box, shape, "from_levelset")
+        check_order(order)
+        spacing = tuple(L / n for L, n in zip(box, shape))
+        mask = v < 0
+        if not mask.any():
+            raise ValueError(
+                f"from_levelset expected an inclusion (phi < 0 somewhere), got no negative values "
+                f"(min {v.min():.4g}). Hint: the convention is negative inside; pass -phi if yours is reversed."
+            )
+        if periodic:
+            for k, (jump, typical) in enumerate(comp.periodicity_ratios(v)):
+                if jump > 3.0 * typical + 1e-12 * (np.abs(v).max() + 1):
+                    raise ValueError(
+                        f"from_levelset expected a periodic field (periodic=True), but along axis {k} the "
+                        f"wrap-around jump |phi[0] - phi[n-1]| averages {jump:.4g}, {jump / max(typical, 1e-300):.1f}"
+                        f" times the largest jump between neighbouring slices ({typical:.4g}). Hint: pass "
+                        "periodic=False, or sample a periodic field at x = i * L / n, i < n (no repeated last node)."
+                    )
+        scale = gradient_scale(v, mask, spacing)
+        if abs(scale - 1.0) > 0.25:
+            v = v / scale
+        labels, n = comp.label_components(mask, periodic)
+        starts, lengths = comp.component_arcs(labels, n, periodic)
+        pad = _CORE_PAD + _SPLINE_PAD[order]
+        r = _reach_steps(reach, lengths, shape, spacing, pad)
+        _, near = comp.nearest_component(labels, spacing, periodic, pad=int(min(max(shape), 2 * pad + 8)))
+        windows, fields = [], []
+        for c in range(1, n + 1):
+            win = comp.make_window(starts[c - 1], lengths[c - 1], shape, periodic, _CORE_PAD, _SPLINE_PAD[order])
+            idx = comp.frame_indices(win.origin, win.shape, shape, periodic)
+            own = comp.take(labels, idx) == c
+            fields.append(comp.levelset_window_field(comp.take(v, idx), own, comp.take(near, idx), c, spacing, win.full))
+            windows.append(win)
+        descriptions = [{"kind": "levelset", "scale": float(scale)} for _ in range(n)]
+        return cls._from_windows(box, periodic, order, labels, starts, lengths, windows, fields, r, descriptions)
+
+    @classmethod
+    def from_labels(cls, labels, box=None, periodic=True, *, reach=None) -> Microstructure:
+        """Inclusions from a labelled image: 0 matrix, k > 0 inclusion (bool: each component one).
+
+        Each label must be one connected region (merged across periodic faces); labels are
+        renumbered 1..N in increasing order (the original is kept in description["label"]). The
+        level set of each is the signed distance to its voxels with the interface half a step
+        from the nodes, lightly smoothed.
+
+        Args:
+            labels: (nx, ny[, nz]) int >= 0 or bool. box, periodic, reach: as in from_levelset.
+        """
+        lab = check_field(labels, "from_labels", labels=True)
+        shape = lab.shape
+        box = check_box(box, shape, "from_labels")
+        spacing = tuple(L / n for L, n in zip(box, shape))
+        if not lab.any():
+            raise ValueError("from_labels expected at least one inclusion (label > 0), got only zeros. "
+                             "Hint: 0 is the matrix, inclusions are labelled 1, 2, ...")
+        comps, n = comp.label_components(lab > 0, periodic)
+        if lab.dtype == bool:
+            values = np.arange(1, n + 1)
+        else:
+            pairs = comp.touching_label_pairs(lab, periodic)
+            if len(pairs):
+                listed = ", ".join(f"{a}-{b}" for a, b in pairs[:8])
+                raise ValueError(
+                    f"from_labels expected separated inclusions, got {len(pairs)} pairs of different labels "
+                    f"sharing a grid face ({listed}). Hint: leave at least one matrix (0) voxel between inclusions."
+                )
+            first = np.zeros(n + 1, dtype=lab.dtype)
+            first[comps.ravel()] = lab.ravel()
+            values = first[1:]
+            uniq, counts = np.unique(values, return_counts=True)
+            if (counts > 1).any():
+                split = ", ".join(f"label {u} has {c} parts" for u, c in zip(uniq, counts) if c > 1)
+                raise ValueError(
+                    f"from_labels expected each label to be one connected region (face-connected, across "
+                    f"periodic faces), got {split}. Hint: relabel, e.g. scipy.ndimage.label(labels > 0)."
+                )
+            order = np.argsort(values)  # ids 1..N by increasing label
+            relabel = np.zeros(n + 1, np.int32)
+            relabel[order + 1] = np.arange(1, n + 1)
+            comps, values = relabel[comps], values[order]
+        starts, lengths = comp.component_arcs(comps, n, periodic)
+        r = _reach_steps(reach, lengths, shape, spacing, _CORE_PAD + _SPLINE_PAD["cubic"])
+        windows, fields = [], []
+        for c in range(1, n + 1):
+            win = comp.make_window(starts[c - 1], lengths[c - 1], shape, periodic, _CORE_PAD, _SPLINE_PAD["cubic"])
+            own = comp.take(comps, comp.frame_indices(win.origin, win.shape, shape, periodic)) == c
+            fields.append(comp.labels_window_field(own, spacing, win.full))
+            windows.append(win)
+        descriptions = [{"kind": "labels", "label": int(val)} for val in values]
+        return cls._from_windows(box, periodic, "cubic", comps, starts, lengths, windows, fields, r, descriptions)
+
+    @classmethod
+    def _from_windows(cls, box, periodic, order, labels, starts, lengths, windows, fields, r, descriptions):
+        shape = labels.shape
+        spacing = np.array([L / n for L, n in zip(box, shape)])
+        owns = [f < 0 for f in fields]
+        errors = size_errors(
+            [(int(o.sum()), comp.chord_thickness(f, o)) for f, o in zip(fields, owns)], descriptions)
+        if errors:
+            raise ValueError(errors)
+        dn1, dn2, nearest = _new_dn(shape)
+        for c, (win, W) in enumerate(zip(windows, fields), start=1):
+            fo, fs = comp.reach_frame(starts[c - 1], lengths[c - 1], shape, periodic, r)
+            idx = comp.frame_indices(fo, fs, shape, periodic)
+            own = comp.take(labels, idx) == c
+            tree = comp.surface_tree(W, W < 0, spacing, win.full)
+            vals = comp.frame_values(W, win, own, fo, spacing, tree)
+            comp.accumulate(dn1, dn2, nearest, c, idx, vals)
+        reach = _finish_dn(dn1, dn2, nearest, labels, spacing, box, periodic, r)
+        inclusions = []
+        for c, (win, W, own, desc) in enumerate(zip(windows, fields, owns, descriptions), start=1):
+            lo, hi = comp.crossing_bounds(W, own, win.full)
+            lower, upper = (win.origin + lo) * spacing, (win.origin + hi) * spacing
+            centre, half = zip(*(comp.core_geometry(win, k, spacing, W.shape) for k in range(len(shape))))
+            data = bspline_coefficients(W) if order == "cubic" else jnp.asarray(W)
+            args = [jnp.asarray(a, dtype=data.dtype) for a in
+                    (win.origin * spacing, centre, half, box, np.asarray(W.shape) * spacing)]
+            phi_fn = jax.tree_util.Partial(_KERNELS[(order == "cubic", bool(periodic))], data, *args)
+            desc = dict(desc, n_samples=int(own.sum()), thickness=comp.chord_thickness(W, own))
+            inclusions.append(Inclusion(c, phi_fn, lower, upper, None, desc))
+        return cls(box, periodic, inclusions, shape, dn1, dn2, nearest, reach)
+
+    @classmethod
+    def from_functions(cls, phi_fns, box, grid_shape, periodic=True, volumes=None, descriptions=None,
+                       *, reach=None) -> Microstructure:
+        """Inclusions from analytic JAX SDFs, one per inclusion, each defined on R^d.
+
+        Periodic: phi_i(x) = min over the 3^d image shifts of f_i(wrap(x) + shift). Bounds come from
+        sampling f_i on the grid (coarse, then fine near its negative set); dn1/dn2 on the grid.
+
+        Args:
+            phi_fns: sequence of callables points (m, d) -> (m,), negative inside.
+            box: (d,) cell lengths; grid_shape: (d,) nodes per axis (equal spacing).
+            periodic: make each inclusion periodic. volumes: optional analytic volumes (or None
+                entries). descriptions: optional dicts (e.g. kind, center, radius).
+            reach: as in from_levelset.
+
+        Raises:
+            ValueError: bad arguments, an inclusion with no or too few negative grid samples, or
+                two inclusions closer than one grid step (touching / overlapping).
+        """
+        fns, box, shape, volumes, descriptions = _check_function_args(phi_fns, box, grid_shape, volumes,
+                                                                      descriptions)
+        spacing = np.array([L / n for L, n in zip(box, shape)])
+        found = [function_bounds(f, i, shape, spacing) for i, f in enumerate(fns)]
+        errors = size_errors([(cnt, th) for _, _, cnt, th in found], descriptions)
+        if errors:
+            raise ValueError(errors)
+        L = np.asarray(box)
+        starts, lengths, bounds = [], [], []
+        for lower, upper, _, _ in found:
+            full = upper - lower >= L * (1 - 1e-9)
+            shift = np.where(full, 0.0, np.floor((lower + upper) / 2 / L) * L) if periodic else 0.0
+            lower, upper = np.where(full, 0.0, lower - shift), np.where(full, L, upper - shift)
+            s = np.floor(lower / spacing + 1e-9).astype(np.int64)
+            starts.append(s)
+            lengths.append(np.minimum(np.ceil(upper / spacing - 1e-9).astype(np.int64) - s + 1, shape))
+            bounds.append((lower, upper))
+        lengths = np.array(lengths)
+        r = _reach_steps(reach, lengths, shape, spacing, _CORE_PAD + _SPLINE_PAD["cubic"])
+        phis = [_Periodized(f, box) if periodic else f for f in fns]
+        dn1, dn2, nearest = _new_dn(shape)
+        for c, (f, phi, s, m) in enumerate(zip(fns, phis, starts, lengths), start=1):
+            fo, fs = comp.reach_frame(s, m, shape, periodic, r)
+            axes = [(o + np.arange(w)) * h for o, w, h in zip(fo, fs, spacing)]
+            pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(shape))
+            big = periodic and np.any(m * spacing > L / 2)  # nearest image by centre may not be nearest
+            vals = evaluate(phi if big else f, pts, name=f"phi_fns[{c - 1}]").reshape(fs)
+            comp.accumulate(dn1, dn2, nearest, c, comp.frame_indices(fo, fs, shape, periodic), vals)
+        labels = np.where(dn1 < 0, nearest, 0)
+        reach_len = _finish_dn(dn1, dn2, nearest, labels, spacing, box, periodic, r)
+        _check_gaps(dn1, dn2, nearest, labels, spacing, shape)
+        inclusions = [
+            Inclusion(c, phi, lo, hi, vol, desc)
+            for c, (phi, (lo, hi), vol, desc) in enumerate(zip(phis, bounds, volumes, descriptions), start=1)
+        ]
+        return cls(box, periodic, inclusions, shape, dn1, dn2, nearest, reach_len)
+
+
+def _reach_steps(reach, lengths, shape, spacing, r_min) -> float:
+    """Reach in grid steps: from the user's length, or the largest the node budget allows."""
+    if reach is None:
+        return comp.choose_reach(np.asarray(lengths), shape, _BUDGET, r_min)
+    if not (isinstance(reach, (int, float)) and reach > 0):
+        raise ValueError(f"expected reach as a positive length (or None, or inf), got {reach!r}.")
+    return np.inf if not np.isfinite(reach) else float(max(r_min, int(np.ceil(reach / min(spacing)))))
+
+
+def _new_dn(shape):
+    return np.full(shape, np.inf), np.full(shape, np.inf), np.zeros(shape, np.int64)
+
+
+def _finish_dn(dn1, dn2, nearest, labels, spacing, box, periodic, r) -> float:
+    """Fill nodes no inclusion reached (finite reach only) and cap dn2; returns the reach length."""
+    h = min(spacing)
+    far = ~np.isfinite(dn1)
+    if far.any():
+        dist, near = comp.nearest_component(labels, spacing, periodic, pad=int(min(max(dn1.shape), r + 2)))
+        dn1[far], nearest[far] = dist[far] - 0.5 * h, near[far]
+    cap = r * h if np.isfinite(r) else 0.5 * float(np.linalg.norm(box))
+    np.minimum(dn2, cap, out=dn2)
+    return r * h if np.isfinite(r) else np.inf
+
+
+def _check_gaps(dn1, dn2, nearest, labels, spacing, shape):
+    """Functions: every inclusion present on the grid, none closer than one grid step to another."""
+    h = min(spacing)
+    missing = sorted(set(range(1, int(nearest.max()) + 1)) - set(np.unique(labels[labels > 0]).tolist()))
+    gap = np.where(np.abs(dn1) <= h, dn1 + dn2, np.inf)
+    worst = np.unravel_index(np.argmin(gap), shape)
+    if gap[worst] < h * (1 - 1e-9):
+        a = int(nearest[worst])
+        x = tuple(round(float(i * s), 4) for i, s in zip(worst, spacing))
+        what = "overlap" if gap[worst] < 0 else "touch (gap below one grid step)"
+        raise ValueError(
+            f"from_functions expected inclusions separated by at least one grid step ({h:.4g}), but inclusion "
+            f"{a} and a neighbour {what}: gap ~ {gap[worst] / h:.2f} steps near x = {x}. Hint: move them apart "
+            "(e.g. random_inclusions(..., min_gap=...)) or refine grid_shape."
+        )
+    if missing:
+        raise ValueError(f"from_functions: inclusions {missing} are hidden inside others (no node of their own). "
+                         "Hint: remove nested or duplicated inclusions.")
+
+
+def _check_function_args(phi_fns, box, grid_shape, volumes, descriptions):
+    if callable(phi_fns) or not isinstance(phi_fns, Sequence) or len(phi_fns) == 0:
+        raise ValueError(f"from_functions expected a non-empty sequence of callables, got {type(phi_fns).__name__}. "
+                         "Hint: pass [sphere_sdf(c, r) for ...], one callable per inclusion.")
+    bad = [i for i, f in enumerate(phi_fns) if not callable(f)]
+    if bad:
+        raise ValueError(f"from_functions expected callables, got non-callable entries at {bad}.")
+    try:
+        shape = tuple(int(n) for n in grid_shape)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"from_functions expected grid_shape as d integers, got {grid_shape!r}.") from err
+    if len(shape) not in (2, 3) or min(shape) < 4 or any(n != m for n, m in zip(shape, grid_shape)):
+        raise ValueError(f"from_functions expected grid_shape of 2 or 3 integers >= 4, got {grid_shape!r}. "
+                         "Hint: e.g. grid_shape=(64, 64, 64).")
+    box = check_box(box, shape, "from_functions", allow_none=False)
+    n = len(phi_fns)
+    volumes = [None] * n if volumes is None else list(volumes)
+    descriptions = [{"kind": "function"} for _ in range(n)] if descriptions is None else list(descriptions)
+    if len(volumes) != n or len(descriptions) != n:
+        raise ValueError(f"from_functions expected {n} volumes and descriptions (one per phi_fn), got "
+                         f"{len(volumes)} and {len(descriptions)}.")
+    for i, vol in enumerate(volumes):
+        if vol is not None and not (np.isfinite(float(vol)) and float(vol) > 0):
+            raise ValueError(f"from_functions expected positive volumes, got volumes[{i}] = {vol!r}.")
+    volumes = [None if vol is None else float(vol) for vol in volumes]
+    return list(phi_fns), box, shape, volumes, [dict(dsc) for dsc in descriptions]

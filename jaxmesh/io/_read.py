@@ -1,0 +1,146 @@
+"""Reading microstructure inputs: level-set fields and labelled images (.npy, .npz, .tif, .vti).
+
+Array axis 0 is x (then y, z), samples on the node-centred grid x_i = i * L / n. Every failure
+(missing file, unknown format, missing key, bad content) is a ValueError with a hint, raised
+before anything is traced.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+_FORMATS = ".npy (level set or labels), .npz (keys phi or labels, optional box, periodic), .tif/.tiff, .vti"
+
+
+def _fail(path, what: str, hint: str):
+    raise ValueError(f"load_input({str(path)!r}): {what}. Hint: {hint}")
+
+
+def _construct(path, kind: str, array, box, periodic):
+    """Microstructure.from_<kind>, its ValueError prefixed with the file."""
+    from ..geometry._microstructure import Microstructure  # lazy: reading a file needs no jax
+
+    try:
+        return getattr(Microstructure, f"from_{kind}")(array, box=box, periodic=periodic)
+    except ValueError as err:
+        raise ValueError(f"load_input({str(path)!r}): {err}") from None
+
+
+def _build(array: np.ndarray, box, periodic: bool, path):
+    """Level set if real-valued, labelled image if integer / bool."""
+    if array.dtype.kind in "biu":
+        return _construct(path, "labels", array, box, periodic)
+    if array.dtype.kind == "f":
+        return _construct(path, "levelset", array, box, periodic)
+    _fail(path, f"expected a float (level set) or integer/bool (labels) array, got dtype {array.dtype}",
+          "save phi as float64 or labels as an integer image")
+
+
+def _read_npz(path: Path, box, periodic):
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            data = {key: npz[key] for key in npz.files}
+    except Exception as err:
+        _fail(path, f"could not read it as .npz ({err})", "write it with numpy.savez")
+    if "phi" not in data and "labels" not in data:
+        _fail(path, f"expected a key 'phi' (level set) or 'labels' (labelled image), got keys {sorted(data)}",
+              "np.savez(path, phi=phi, box=box) or np.savez(path, labels=labels)")
+    if box is None and "box" in data:
+        box = tuple(np.asarray(data["box"], dtype=float).ravel().tolist())
+    if periodic is None:
+        periodic = bool(np.asarray(data["periodic"]).item()) if "periodic" in data else True
+    if "kind" in data:  # analytic inclusions written by jaxmesh._generate: rebuild them exactly
+        try:
+            from .._generate import microstructure_from_npz
+        except ImportError:
+            microstructure_from_npz = None
+        if microstructure_from_npz is not None:
+            merged = dict(data, periodic=np.asarray(periodic))
+            if box is not None:
+                merged["box"] = np.asarray(box, dtype=float)
+            built = microstructure_from_npz(merged)
+            if built is not None:
+                return built
+    if "phi" in data:
+        phi = np.asarray(data["phi"])
+        if phi.dtype.kind not in "f":
+            _fail(path, f"expected 'phi' to hold real level-set values, got dtype {phi.dtype}",
+                  "store labelled images under the key 'labels'")
+        return _construct(path, "levelset", phi, box, periodic)
+    labels = np.asarray(data["labels"])
+    if labels.dtype.kind not in "biu":
+        _fail(path, f"expected 'labels' to hold integers or bools, got dtype {labels.dtype}",
+              "store level sets under the key 'phi', or cast labels with .astype(int)")
+    return _build(labels, box, periodic, path)
+
+
+def _read_vti(path: Path, box, periodic):
+    try:
+        import pyvista
+    except ImportError:
+        _fail(path, ".vti needs pyvista, which is not installed", "pip install pyvista, or save as .npy/.npz")
+    try:
+        image = pyvista.read(str(path))
+    except Exception as err:
+        _fail(path, f"pyvista could not read it ({err})", "check that it is a VTK ImageData (.vti) file")
+    names = list(image.point_data.keys())
+    name = next((n for n in ("phi", "labels") if n in names), names[0] if names else None)
+    if name is None:
+        _fail(path, "expected point data (one value per grid node), got none",
+              "store phi or labels as point data on the image")
+    dims = [int(n) for n in image.dimensions if n > 1]
+    array = np.asarray(image.point_data[name]).reshape(dims[::-1]).transpose()  # VTK: x fastest
+    if box is None:
+        box = tuple(float(n * h) for n, h in zip(image.dimensions, image.spacing) if n > 1)
+    return _build(array, box, periodic, path)
+
+
+def load_input(path, box=None, periodic: bool | None = None):
+    """Read a microstructure from a file.
+
+    Args:
+        path: .npy (float: level set; integer/bool: labels), .npz (key 'phi' or 'labels',
+            optional 'box' and 'periodic'; analytic inclusions written by jaxmesh.generate are
+            rebuilt exactly when that module is available), .tif/.tiff (integer: labels, else
+            level set; array axis 0 = x), .vti (pyvista; point data 'phi' or 'labels' or the first).
+        box: (d,) cell lengths; overrides the file's; default from the file, else the unit cube.
+        periodic: overrides the file's 'periodic'; default from the file, else True.
+
+    Returns:
+        A Microstructure.
+
+    Raises:
+        ValueError: missing file, unknown extension, missing key, or invalid content.
+
+    Example:
+        >>> ms = load_input("rve.npz")
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"load_input expected a file path, got {type(path).__name__}. Hint: pass a str or Path.")
+    path = Path(path)
+    if not path.is_file():
+        _fail(path, "no such file", "check the path (relative paths start from the working directory)")
+    ext = "".join(path.suffixes[-1:]).lower()
+    if ext == ".npz":
+        return _read_npz(path, box, periodic)
+    periodic = True if periodic is None else periodic
+    if ext == ".npy":
+        try:
+            array = np.load(path, allow_pickle=False)
+        except Exception as err:
+            _fail(path, f"could not read it as .npy ({err})", "write it with numpy.save")
+        return _build(np.asarray(array), box, periodic, path)
+    if ext in (".tif", ".tiff"):
+        try:
+            from skimage import io as skio
+
+            array = np.asarray(skio.imread(str(path)))
+        except Exception as err:
+            _fail(path, f"could not read the TIFF ({err})", "save a single-channel 2D image or 3D stack")
+        return _build(array, box, periodic, path)
+    if ext == ".vti":
+        return _read_vti(path, box, periodic)
+    _fail(path, f"unknown extension {ext or '(none)'!r}", f"supported formats: {_FORMATS}")

@@ -1,0 +1,306 @@
+"""Microstructure: periodic components, per-inclusion level sets, DN1/DN2, labels, bad inputs."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxmesh.geometry._components import chord_thickness, label_components
+from jaxmesh.geometry._grid import grid_phi_fn, make_levelset_grid
+from jaxmesh.geometry._microstructure import Microstructure
+
+
+def nodes(n, d):
+    x = np.arange(n) / n
+    return np.stack(np.meshgrid(*[x] * d, indexing="ij"), axis=-1)
+
+
+def ball(points, center, r):
+    """Exact periodic signed distance to a ball (unit box), NumPy."""
+    dd = points - np.asarray(center)
+    dd -= np.round(dd)
+    return np.linalg.norm(dd, axis=-1) - r
+
+
+def jball(center, r):
+    c = jnp.asarray(center)
+    return lambda p: jnp.linalg.norm(p - c, axis=-1) - r
+
+
+def on_sphere(center, r, m, d=3, seed=0):
+    u = np.random.default_rng(seed).normal(size=(m, d))
+    return np.asarray(center) + r * u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+@pytest.fixture(scope="module")
+def two_spheres():
+    """Spheres r=0.15 at x=0.3 and 0.7 on 32^3, the exact SDF as input."""
+    X = nodes(32, 3)
+    s1, s2 = ball(X, (0.3, 0.5, 0.5), 0.15), ball(X, (0.7, 0.5, 0.5), 0.15)
+    return Microstructure.from_levelset(np.minimum(s1, s2)), s1, s2
+
+
+# ---- periodic components ----
+
+def test_label_components_merges_across_faces():
+    mask = np.zeros((8, 8), bool)
+    mask[0, 2:4] = mask[7, 2:4] = True  # one blob split by the x face
+    mask[3:5, 0] = mask[3:5, 7] = True  # one split by the y face
+    mask[0, 0] = mask[7, 7] = mask[0, 7] = mask[7, 0] = True  # one at the corner
+    labels, n = label_components(mask, periodic=True)
+    assert n == 3
+    assert label_components(mask, periodic=False)[1] == 8
+
+
+@pytest.mark.parametrize("center", [(0.0, 0.0, 0.0), (0.0, 0.5, 0.5), (0.99, 0.02, 0.5)])
+def test_sphere_through_corner_or_face_is_one_inclusion(center):
+    ms = Microstructure.from_levelset(ball(nodes(24, 3), center, 0.2))
+    assert len(ms.inclusions) == 1
+    inc = ms.inclusions[0]
+    # unwrapped bounds around the centre, bbox centre inside the box
+    c = (inc.lower + inc.upper) / 2
+    assert np.all((c >= -1e-9) & (c < 1.0))
+    np.testing.assert_allclose(inc.upper - inc.lower, 0.4, atol=1 / 24)
+    exact = ((np.asarray(center) - c + 0.5) % 1.0) - 0.5
+    np.testing.assert_allclose(exact, 0.0, atol=0.5 / 24)
+    pts = np.mod(on_sphere(center, 0.12, 50) , 1.0)
+    assert (ms.label(pts) == 1).all()
+    assert (ms.label(np.mod(on_sphere(center, 0.3, 50), 1.0)) == 0).all()
+
+
+def test_circle_at_corner_2d_and_volume_fraction():
+    X = nodes(48, 2)
+    ms = Microstructure.from_levelset(np.minimum(ball(X, (0, 0), 0.2), ball(X, (0.5, 0.5), 0.1)))
+    assert len(ms.inclusions) == 2 and ms.dim == 2
+    assert ms.volume_fraction() == pytest.approx(np.pi * (0.2**2 + 0.1**2), rel=0.01)
+    pts = np.array([[0.01, 0.99], [0.5, 0.5], [0.3, 0.3]])
+    assert ms.label(pts).tolist() == [1, 2, 0]
+
+
+def test_percolating_cylinder():
+    X = nodes(24, 3)
+    phi = np.hypot(((X[..., 1] - 0.5 + 0.5) % 1) - 0.5, ((X[..., 2] - 0.5 + 0.5) % 1) - 0.5) - 0.2
+    ms = Microstructure.from_levelset(phi)
+    inc, = ms.inclusions
+    assert inc.upper[0] - inc.lower[0] == pytest.approx(1.0)
+    np.testing.assert_allclose(inc.upper[1:] - inc.lower[1:], 0.4, atol=1 / 24)
+    assert ms.inclusion_phi(1, np.array([[0.37, 0.5, 0.5]]))[0] == pytest.approx(-0.2, abs=1e-3)
+
+
+# ---- per-inclusion level sets ----
+
+@pytest.mark.parametrize("order", ["cubic", "linear"])
+def test_two_spheres_one_step_apart_stay_two(order):
+    n, r = 32, 0.15
+    h = 1 / n
+    c1, c2 = (0.5 - r - 0.6 * h, 0.5, 0.5), (0.5 + r + 0.6 * h, 0.5, 0.5)
+    X = nodes(n, 3)
+    s1, s2 = ball(X, c1, r), ball(X, c2, r)
+    phi = np.minimum(s1, s2)
+    ms = Microstructure.from_levelset(phi, order=order)
+    assert len(ms.inclusions) == 2
+    # each inclusion's level set is positive on the other (nodes and points inside it)
+    assert (ms.inclusion_phi(1, X[s2 < 0]) > 0).all() and (ms.inclusion_phi(2, X[s1 < 0]) > 0).all()
+    inside2 = on_sphere(c2, 0.9 * r, 300)
+    assert (ms.inclusion_phi(1, inside2) > 0).all()
+    # its zero set is the input field's zero set (same interpolation), near the gap too
+    global_fn = grid_phi_fn(make_levelset_grid(phi), order=order)
+    pts = on_sphere(c1, r, 400, seed=1)
+    own, ref = ms.inclusion_phi(1, pts), np.asarray(global_fn(pts))
+    # the cubic prefilter is not local: the changed values across the gap weigh ~0.268^steps
+    assert np.abs(own - ref)[pts[:, 0] < 0.5 - 3 * h].max() < 1e-2 * h
+    assert np.abs(own - ref)[pts[:, 0] < 0.5 - 6 * h].max() < 1e-3 * h
+    assert np.abs(own - ref).max() < 0.25 * h
+    assert np.abs(own).max() < (0.05 if order == "cubic" else 0.2) * h + np.abs(ref).max()
+    assert ms.label(np.array([c1, c2, (0.5, 0.5, 0.5)])).tolist() == [1, 2, 0]
+
+
+def test_dn1_dn2_nearest_vs_brute_force(two_spheres):
+    ms, s1, s2 = two_spheres
+    h = 1 / 32
+    d1, d2 = np.minimum(s1, s2), np.maximum(s1, s2)
+    near = np.abs(d1) < 2 * h
+    np.testing.assert_allclose(ms.dn1[near], d1[near], atol=1e-12)  # the input's values kept
+    band = np.abs(d1) < 8 * h
+    assert np.abs(ms.dn1 - d1)[band].max() < 0.15 * h
+    assert np.abs(ms.dn2 - d2)[d2 < 8 * h].max() < 0.15 * h  # sub-voxel surface distances
+    assert np.abs(ms.dn1 - d1).max() < 0.55 * h and np.abs(ms.dn2 - d2).max() < 0.55 * h
+    assert (ms.dn2 > 0).all() and ms.reach == np.inf
+    clear = np.abs(s1 - s2) > h
+    np.testing.assert_array_equal(ms.nearest_id[clear], np.where(s1 < s2, 1, 2)[clear])
+
+
+def test_phi_label_global_fn_and_gradients(two_spheres):
+    ms, _, _ = two_spheres
+    h = 1 / 32
+    pts = np.random.default_rng(3).random((600, 3))
+    exact = np.minimum(ball(pts, (0.3, 0.5, 0.5), 0.15), ball(pts, (0.7, 0.5, 0.5), 0.15))
+    near = np.abs(exact) < 3 * h
+    err = np.abs(ms.phi(pts) - exact)
+    assert err[np.abs(exact) < h].max() < 0.02 * h and err[near].max() < 0.15 * h  # cubic interpolation
+    assert np.abs(ms.phi(pts) - exact).max() < 2 * h  # farther: a distance estimate, right sign
+    np.testing.assert_array_equal(ms.phi(pts)[clear := np.abs(exact) > 0.02 * h] < 0, exact[clear] < 0)
+    np.testing.assert_array_equal((ms.label(pts) > 0)[clear], (exact < 0)[clear])
+    fn = jax.jit(ms.global_phi_fn())
+    np.testing.assert_allclose(np.asarray(fn(pts))[near], ms.phi(pts)[near], atol=1e-12)
+    # gradient of an inclusion's phi_fn and of DN1 vs central differences; |grad| ~ 1 near surfaces
+    x = on_sphere((0.3, 0.5, 0.5), 0.15 + h, 8, seed=4)
+    for f in (ms.inclusions[0].phi_fn, fn):
+        g = np.asarray(jax.vmap(jax.grad(lambda p: f(p[None])[0]))(jnp.asarray(x)))
+        eps = 1e-6
+        fd = np.stack([(np.asarray(f(x + eps * e)) - np.asarray(f(x - eps * e))) / (2 * eps) for e in np.eye(3)], -1)
+        np.testing.assert_allclose(g, fd, atol=1e-6)
+        np.testing.assert_allclose(np.linalg.norm(g, axis=1), 1.0, atol=0.05)
+
+
+def test_phi_fn_periodic_and_positive_far_away(two_spheres):
+    ms, _, _ = two_spheres
+    pts = np.random.default_rng(5).random((200, 3))
+    for inc in ms.inclusions:
+        a = ms.inclusion_phi(inc.id, pts)
+        np.testing.assert_allclose(ms.inclusion_phi(inc.id, pts + np.array([1.0, -2.0, 3.0])), a, atol=1e-10)
+    far = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0]])
+    assert (ms.inclusion_phi(1, far) > 0.2).all()
+
+
+def test_scaled_field_is_normalised():
+    X = nodes(24, 3)
+    phi = ball(X, (0.5, 0.5, 0.5), 0.25)
+    ms = Microstructure.from_levelset(40.0 * phi)
+    assert ms.inclusions[0].description["scale"] == pytest.approx(40.0, rel=0.05)
+    assert np.abs(ms.inclusion_phi(1, on_sphere((0.5, 0.5, 0.5), 0.25, 100))).max() < 0.01 / 24
+
+
+def test_finite_reach_caps_dn2_and_fills_far_nodes():
+    X = nodes(32, 3)
+    centers = [(0.2, 0.2, 0.2), (0.7, 0.3, 0.6), (0.4, 0.75, 0.8)]
+    phi = np.min([ball(X, c, 0.1) for c in centers], axis=0)
+    full = Microstructure.from_levelset(phi)
+    capped = Microstructure.from_levelset(phi, reach=0.1)
+    assert np.isfinite(capped.reach) and capped.reach >= 0.1
+    assert np.isfinite(capped.dn1).all() and capped.dn2.max() <= capped.reach + 1e-12
+    near = np.abs(full.dn1) < 3 / 32
+    np.testing.assert_allclose(capped.dn1[near], full.dn1[near], atol=1e-12)
+    np.testing.assert_allclose(capped.dn2, np.minimum(full.dn2, capped.reach), atol=0.55 / 32)
+    np.testing.assert_array_equal(capped.nearest_id[near], full.nearest_id[near])
+
+
+# ---- labels and functions ----
+
+def test_from_labels():
+    n = 24
+    X = nodes(n, 3)
+    lab = np.zeros((n,) * 3, np.int32)
+    lab[ball(X, (0.3, 0.5, 0.5), 0.15) < 0] = 3
+    lab[ball(X, (0.0, 0.0, 0.9), 0.15) < 0] = 7  # through a corner
+    ms = Microstructure.from_labels(lab)
+    assert [inc.description["label"] for inc in ms.inclusions] == [3, 7]
+    assert ms.label(np.array([[0.3, 0.5, 0.5], [0.98, 0.01, 0.9], [0.6, 0.1, 0.3]])).tolist() == [1, 2, 0]
+    assert ms.volume_fraction() == pytest.approx((lab > 0).mean(), rel=1e-6)  # volume preserved
+    dev = ms.inclusion_phi(1, on_sphere((0.3, 0.5, 0.5), 0.15, 500))
+    assert abs(dev.mean()) < 0.1 / n and np.abs(dev).max() < 0.5 / n  # staircase -> within half a step
+    # node labels are reproduced exactly, and each level set is positive on the other label
+    np.testing.assert_array_equal(ms.label(X.reshape(-1, 3)), np.searchsorted([0, 3, 7], lab.ravel()))
+    assert (ms.inclusion_phi(1, X[lab == 7]) > 0).all()
+    b = Microstructure.from_labels(lab > 0)
+    assert len(b.inclusions) == 2
+
+
+def test_from_functions_analytic():
+    n = 24
+    fns = [jball((0.0, 0.0, 0.0), 0.2), jball((0.5, 0.55, 0.5), 0.15)]
+    vols = [4 / 3 * np.pi * 0.2**3, 4 / 3 * np.pi * 0.15**3]
+    ms = Microstructure.from_functions(fns, (1.0, 1.0, 1.0), (n, n, n), volumes=vols,
+                                       descriptions=[{"kind": "sphere"}, {"kind": "sphere"}])
+    np.testing.assert_allclose(ms.inclusions[0].lower, -0.2, atol=0.02 / n)
+    np.testing.assert_allclose(ms.inclusions[1].upper, [0.65, 0.7, 0.65], atol=0.02 / n)
+    X = nodes(n, 3)
+    e1, e2 = ball(X, (0, 0, 0), 0.2), ball(X, (0.5, 0.55, 0.5), 0.15)
+    np.testing.assert_allclose(ms.dn1, np.minimum(e1, e2), atol=1e-12)
+    np.testing.assert_allclose(ms.dn2, np.maximum(e1, e2), atol=1e-12)
+    assert ms.volume_fraction() == pytest.approx(sum(vols))
+    pts = np.random.default_rng(6).random((300, 3))
+    exact = np.minimum(ball(pts, (0, 0, 0), 0.2), ball(pts, (0.5, 0.55, 0.5), 0.15))
+    near = np.abs(exact) < 0.2
+    np.testing.assert_allclose(ms.phi(pts)[near], exact[near], atol=1e-12)
+    np.testing.assert_allclose(ms.phi(pts + 3.0)[near], exact[near], atol=1e-12)
+    ms2 = Microstructure.from_functions([jball((0.5, 0.5), 0.3)], (2.0, 2.0), (32, 32))  # 2D, L = 2
+    assert ms2.dim == 2 and ms2.label(np.array([[0.6, 0.5], [1.5, 1.5]])).tolist() == [1, 0]
+
+
+def test_chord_thickness_of_a_slab():
+    field = np.tile(np.abs(np.arange(12) - 5.5)[:, None] - 1.25, (1, 6))  # slab 2.5 steps thick
+    assert chord_thickness(field, field < 0) == pytest.approx(2.5)
+
+
+# ---- bad inputs ----
+
+def _raises(match, fn, *args, **kw):
+    with pytest.raises(ValueError, match=match):
+        fn(*args, **kw)
+
+
+def test_bad_levelsets():
+    X = nodes(24, 3)
+    phi = ball(X, (0.5, 0.5, 0.5), 0.2)
+    bad = phi.copy()
+    bad[1, 2, 3] = np.nan
+    _raises("finite", Microstructure.from_levelset, bad)
+    _raises("2D or 3D", Microstructure.from_levelset, phi[0, 0])
+    _raises("no negative values", Microstructure.from_levelset, np.abs(phi) + 0.1)
+    _raises("periodic=False", Microstructure.from_levelset, np.linalg.norm(X - 0.3, axis=-1) - 0.2)
+    ms = Microstructure.from_levelset(np.linalg.norm(X - 0.3, axis=-1) - 0.2, periodic=False)
+    assert len(ms.inclusions) == 1
+    speck = phi.copy()
+    speck[2, 2, 2] = -0.01  # one negative node: not resolved by the grid
+    _raises(r"inclusion 1: 1 negative samples", Microstructure.from_levelset, speck)
+    sheet = np.abs(X[..., 0] - 0.5) - 0.3 / 24  # a sheet one node thick
+    _raises("steps thick", Microstructure.from_levelset, sheet)
+    _raises("box", Microstructure.from_levelset, phi, box=(1.0, 1.0))
+    _raises("equal grid spacing", Microstructure.from_levelset, phi, box=(1.0, 2.0, 1.0))
+    _raises("order", Microstructure.from_levelset, phi, order="quintic")
+    _raises("from_labels", Microstructure.from_levelset, phi < 0)
+
+
+def test_bad_labels():
+    lab = np.zeros((16, 16), np.int64)
+    lab[2:6, 2:6] = 1
+    lab[6:9, 2:6] = 2
+    _raises("sharing a grid face", Microstructure.from_labels, lab)
+    lab = np.zeros((16, 16), np.int64)
+    lab[2:6, 2:6] = 1
+    lab[10:14, 10:14] = 1
+    _raises("label 1 has 2 parts", Microstructure.from_labels, lab)
+    lab = np.zeros((16, 16), np.int64)
+    lab[0:3, 5:9] = 4
+    lab[14:16, 5:9] = 4  # one inclusion through the periodic face: fine
+    assert len(Microstructure.from_labels(lab).inclusions) == 1
+    _raises("periodic faces", Microstructure.from_labels, lab, periodic=False)
+    _raises("only zeros", Microstructure.from_labels, np.zeros((8, 8), int))
+    _raises(">= 0", Microstructure.from_labels, -lab)
+    _raises("integer or bool", Microstructure.from_labels, lab.astype(float))
+    tiny = np.zeros((16, 16), int)
+    tiny[4:8, 4:8] = 1
+    tiny[12, 12] = 2
+    _raises(r"inclusion 2 \(label 2\)", Microstructure.from_labels, tiny)
+
+
+def test_bad_functions():
+    box, shape = (1.0, 1.0), (32, 32)
+    h = 1 / 32
+    _raises("touch", Microstructure.from_functions,
+            [jball((0.3, 0.5), 0.15), jball((0.6 + 0.4 * h, 0.5), 0.15)], box, shape)
+    _raises("overlap", Microstructure.from_functions, [jball((0.3, 0.5), 0.15), jball((0.5, 0.5), 0.15)], box, shape)
+    ok = Microstructure.from_functions([jball((0.3, 0.5), 0.15), jball((0.6 + 1.5 * h, 0.5), 0.15)], box, shape)
+    assert len(ok.inclusions) == 2
+    _raises("negative somewhere", Microstructure.from_functions, [lambda p: jnp.ones(p.shape[0])], box, shape)
+    _raises("negative", Microstructure.from_functions, [jball((0.51, 0.5), 0.2 * h)], box, shape)
+    _raises("failed", Microstructure.from_functions, [lambda p: p @ jnp.ones(3)], box, shape)
+    _raises("NaN", Microstructure.from_functions, [lambda p: jnp.full(p.shape[0], jnp.nan)], box, shape)
+    _raises("callables", Microstructure.from_functions, [1.0], box, shape)
+    _raises("sequence", Microstructure.from_functions, jball((0.5, 0.5), 0.2), box, shape)
+    _raises("grid_shape", Microstructure.from_functions, [jball((0.5, 0.5), 0.2)], box, (32,))
+    _raises("volumes", Microstructure.from_functions, [jball((0.5, 0.5), 0.2)], box, shape, volumes=[-1.0])
+    ms = Microstructure.from_functions([jball((0.5, 0.5), 0.2)], box, shape)
+    _raises("points of shape", ms.phi, np.zeros((3, 3)))
+    _raises("inclusion id", ms.inclusion_phi, 2, np.zeros((1, 2)))
