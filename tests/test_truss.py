@@ -342,6 +342,30 @@ def test_topology_module_never_imports_jax():
     subprocess.run([sys.executable, "-c", code, topo.__file__], check=True)
 
 
+def test_ball_vertex_springs_in_the_3d_driver_remove_slivers():
+    n = 6  # jittered lattice of the unit cube, box-surface nodes fixed
+    g = np.linspace(0, 1, n)
+    grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    bnd = np.any((grid == 0) | (grid == 1), axis=1)
+    pts = grid + np.where(bnd[:, None], 0, np.random.default_rng(0).uniform(-0.3, 0.3, grid.shape) / (n - 1))
+
+    def tets_fn(p):  # Delaunay without the flat tets that coplanar box-face nodes produce
+        s = Delaunay(p).simplices
+        x = p[s]
+        return s[np.abs(np.linalg.det(x[:, 1:] - x[:, :1])) > 1e-10]
+
+    cons = make_constraints(len(pts), 3, fixed=bnd)
+    bad = []
+    for k in (0.0, 1.0):
+        cfg = TrussConfig(dt=0.05, fscale=1.1, max_retriangulations=10, max_dt_retries=0, ball_vertex_stiffness=k,
+                          ball_vertex_quality=0.4)  # fmt: skip
+        res = relax(pts, tets_fn, h_uniform, cons, config=cfg, box=(1.0, 1.0, 1.0))
+        assert res.simplices.shape[1] == 4 and np.all(np.isfinite(res.points))
+        np.testing.assert_array_equal(res.points[bnd], pts[bnd])
+        bad.append(int(np.sum(simplex_quality(res.points, res.simplices) < 0.3)))
+    assert bad[1] < bad[0] / 2, bad  # measured: 18 -> 2 of ~810 tets
+
+
 # ---------------------------------------------------------------- gradients through the scan
 def _fd(f, x, eps):
     return (f(x + eps) - f(x - eps)) / (2 * eps)

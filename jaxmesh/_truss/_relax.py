@@ -50,7 +50,8 @@ class TrussConfig:
             (simplex columns - 1 in relax, the point dimension in relax_fixed_topology).
         newton_steps: Newton projections onto phi = 0 after each move.
         box_tolerance: a node further than box_tolerance * L outside [0, L] means divergence.
-        ball_vertex_stiffness: > 0 adds ball-vertex springs (tets only, section 4.7).
+        ball_vertex_stiffness: > 0 adds ball-vertex springs (tets only, section 4.7); keep
+            dt * stiffness * (springs at a node) below ~1 or the explicit steps oscillate.
         ball_vertex_quality: tets with quality below it get a ball-vertex spring.
         final_triangulation: triangulate the final points once more for the returned simplices.
     """
