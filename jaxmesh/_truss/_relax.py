@@ -277,8 +277,16 @@ def relax(
     stop event -> converged: done; a bar changed by > retriangulate_tol or max_iterations
     reached: retriangulate (at most max_retriangulations times); NaN or a node outside ``box``:
     diverged. A diverged or unconverged attempt restarts from the initial points with
-    dt * dt_retry_factor, at most max_dt_retries times. The alpha ramp runs over the global
-    iteration count of an attempt.
+    dt * dt_retry_factor, at most max_dt_retries times; the returned attempt is the last one that
+    did not diverge (else the last one). The alpha ramp runs over the global iteration count of
+    an attempt, and convergence is only declared once alpha = 1.
+
+    Bar length changes (retriangulate_tol, stop_tol) are measured relative to each bar's target
+    length at the last triangulation (scale * h at its midpoint), not to its current length. A
+    retriangulation that returns exactly the same bars only resets the reference lengths and is
+    not counted. The scan is compiled once per (n, d, dtype, bar capacity, callables): pass the
+    same ``h_fn`` / ``surface_phi_fn`` objects (module-level functions or eqx.Modules whose
+    arrays are traced) to reuse it across calls; a fresh lambda per call re-traces.
 
     Args:
         points: (n, d) initial points (periodic translates are re-imposed at the start).
