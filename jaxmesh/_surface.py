@@ -1,0 +1,325 @@
+"""Inclusion surfaces (paper 4.4): per-inclusion marching cubes, projection onto phi = 0,
+refinement / flips / truss relaxation, cutting by the box planes and wrapping into the box.
+
+Each inclusion is meshed in its own UNWRAPPED coordinates (its bounds may stick out of [0, L)),
+so that one node set serves every periodic copy: a node on the plane x = kL appears once here and
+twice after wrapping (on x = 0 and x = L), which makes opposite traces exact translates.
+The NumPy topology lives in ``_surface_ops``; this module holds the JAX glue.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from skimage.measure import marching_cubes
+
+from ._errors import MeshingError
+from ._surface_ops import (
+    cut_plane,
+    flip_edges,
+    half_edges,
+    refine,
+    snap_candidates,
+    straddling,
+    triangle_cells,
+)
+from ._truss import TrussConfig, make_constraints, phi_and_grad, relax
+from ._truss._topology import bucket_capacity
+from .geometry._microstructure import evaluate
+
+
+@dataclasses.dataclass(frozen=True)
+class SurfaceConfig:
+    """Parameters of the surface stage.
+
+    Attributes:
+        mc_step: marching-cubes grid step as a fraction of the local h (about one node per h^2).
+        refine_ratio: edges longer than refine_ratio * h are split (1-to-4 refinement).
+        snap_fraction: before a cut, vertices closer than snap_fraction * h to the plane are
+            moved onto it (no sliver pieces).
+        improve_rounds: refine / flip / relax rounds before the cut (and after it).
+        newton_steps: Newton iterations of the projections onto phi = 0.
+        truss: TrussConfig of the surface relaxations.
+        face_truss: TrussConfig of the 2D box-face relaxations.
+        face_clearance: face interior nodes closer than face_clearance * h to a constrained
+            segment are dropped before the face triangulation.
+        check_intersections: run the triangle-triangle self-intersection check at the end.
+    """
+
+    mc_step: float = 1.0
+    refine_ratio: float = 1.6
+    snap_fraction: float = 0.3
+    improve_rounds: int = 2
+    newton_steps: int = 8
+    truss: TrussConfig = TrussConfig(dt=0.2, max_iterations=40, max_retriangulations=4, newton_steps=3)
+    face_truss: TrussConfig = TrussConfig(dt=0.2, max_iterations=40, max_retriangulations=4)
+    face_clearance: float = 0.6
+    check_intersections: bool = True
+
+    def __post_init__(self):
+        for name in ("mc_step", "refine_ratio", "face_clearance"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+                raise ValueError(f"SurfaceConfig.{name}: expected a finite number > 0, got {v!r}.")
+        if not (0 <= self.snap_fraction < 0.5):
+            raise ValueError(f"SurfaceConfig.snap_fraction: expected a number in [0, 0.5), got {self.snap_fraction!r}.")
+        for name in ("improve_rounds", "newton_steps"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and v >= 0):
+                raise ValueError(f"SurfaceConfig.{name}: expected an integer >= 0, got {v!r}.")
+        for name in ("truss", "face_truss"):
+            if not isinstance(getattr(self, name), TrussConfig):
+                raise ValueError(f"SurfaceConfig.{name}: expected a TrussConfig, got {type(getattr(self, name)).__name__}.")
+
+
+class ConstantSize(eqx.Module):
+    """h(x) = h everywhere; a PyTree, so compiled relaxations are reused across calls."""
+
+    h: jax.Array
+
+    def __call__(self, points):
+        return jnp.full(points.shape[:1], self.h, dtype=points.dtype)
+
+
+class WrappedSize(eqx.Module):
+    """h_fn evaluated at the points wrapped into the box (unwrapped surface coordinates)."""
+
+    h_fn: Callable
+    box: tuple[float, ...] = eqx.field(static=True)
+
+    def __call__(self, points):
+        L = jnp.asarray(self.box, dtype=points.dtype)
+        return jnp.reshape(self.h_fn(points - L * jnp.floor(points / L)), points.shape[:1])
+
+
+def as_size_fn(h, box) -> Callable:
+    """A JAX size callable from a positive float or a callable points (m, d) -> (m,)."""
+    if callable(h):
+        return WrappedSize(h, tuple(float(b) for b in box))
+    if isinstance(h, (int, float, np.floating, np.integer)) and np.isfinite(h) and h > 0:
+        return ConstantSize(jnp.asarray(float(h)))
+    raise ValueError(f"h: expected a float > 0 or a callable points (m, 3) -> (m,), got {h!r}. Hint: h = radius / 4.")
+
+
+@eqx.filter_jit
+def _newton(phi_fn, pts, locked, n_iter: int):
+    def body(p, _):
+        phi, g = phi_and_grad(phi_fn, p)
+        g = jnp.where(locked, 0.0, g)
+        sq = jnp.sum(g * g, axis=-1)
+        step = jnp.where(sq > 0, phi / jnp.where(sq > 0, sq, 1.0), 0.0)
+        return p - step[:, None] * g, None
+
+    p, _ = jax.lax.scan(body, pts, None, length=n_iter)
+    phi, g = phi_and_grad(phi_fn, p)
+    return p, phi, g
+
+
+def _pad(a: np.ndarray) -> tuple[np.ndarray, int]:
+    k = len(a)
+    size = max(64, 1 << (k - 1).bit_length())
+    return np.concatenate([a, np.repeat(a[-1:], size - k, axis=0)]), k
+
+
+def project(phi_fn, points: np.ndarray, locked: np.ndarray, n_iter: int = 8):
+    """Newton projection p -= phi g/|g|^2 onto phi = 0 with the locked coordinates kept exactly.
+
+    Args:
+        phi_fn: JAX level set. points: (m, 3). locked: (m, 3) bool.
+    Returns:
+        (points (m, 3), phi (m,), grad (m, 3)) NumPy float64.
+    """
+    if len(points) == 0:
+        return points.copy(), np.zeros(0), np.zeros((0, 3))
+    p, k = _pad(np.asarray(points, float))
+    lk, _ = _pad(np.asarray(locked, bool))
+    q, phi, g = _newton(phi_fn, jnp.asarray(p), jnp.asarray(lk), int(n_iter))
+    q = np.where(lk, p, np.array(q))  # locked coordinates stay bit-identical
+    return q[:k].copy(), np.array(phi)[:k], np.array(g)[:k]
+
+
+def level_set_gradient(phi_fn, points: np.ndarray) -> np.ndarray:
+    """(m, 3) gradients of phi_fn at NumPy points."""
+    return project(phi_fn, points, np.ones((len(points), 3), bool), 0)[2]
+
+
+def extract(phi_fn, lower, upper, step: float):
+    """Marching cubes of one inclusion on a window around its (unwrapped) bounds.
+
+    Returns:
+        (points (n, 3), triangles (t, 3)) oriented with outward normals (positive enclosed volume).
+    """
+    lo = np.asarray(lower, float) - 2.5 * step
+    n = np.ceil((np.asarray(upper, float) + 2.5 * step - lo) / step).astype(int) + 1
+    axes = [lo[a] + step * np.arange(n[a]) for a in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    vals = evaluate(phi_fn, grid).reshape(n)
+    vals = np.where(vals == 0.0, 1e-12 * step, vals)  # no vertex exactly on a grid node
+    verts, faces, _, _ = marching_cubes(vals, 0.0, spacing=(step,) * 3, allow_degenerate=False)
+    pts = verts.astype(np.float64) + lo
+    tris = faces.astype(np.int64)
+    if enclosed_volume(pts, tris) < 0:
+        tris = tris[:, ::-1].copy()
+    return pts, tris
+
+
+def enclosed_volume(points: np.ndarray, tris: np.ndarray) -> float:
+    """Divergence-theorem volume of a closed oriented triangle set (positive for outward normals)."""
+    p = points[tris]
+    return float(np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6.0)
+
+
+def _relax(points, tris, on_plane, phi_fn, h_fn, box, truss: TrussConfig, cut: bool):
+    """Truss relaxation on the surface; flips (not across a box plane) are the retriangulation.
+    Nodes on one box plane slide along their trace, nodes on two planes are fixed."""
+    n = len(points)
+    cap = bucket_capacity(n)
+    p = np.vstack([points, np.repeat(points[:1], cap - n, axis=0)])
+    fixed = np.zeros(cap, bool)
+    fixed[n:] = True
+    fixed[:n] = on_plane.sum(axis=1) >= 2
+    locked = np.zeros((cap, 3), bool)
+    locked[:n] = on_plane
+    cons = make_constraints(cap, 3, fixed=fixed, locked_axes=locked, on_surface=~fixed)
+    state = {"tris": tris}
+
+    def triangulate(q):
+        allowed = None
+        if cut:
+            cells = triangle_cells(q[:n], state["tris"], box)
+            allowed = lambda t1, t2: (cells[t1] == cells[t2]).all(axis=1)  # noqa: E731
+        state["tris"], _ = flip_edges(q[:n], state["tris"], allowed)
+        return state["tris"]
+
+    res = relax(p, triangulate, h_fn, cons, surface_phi_fn=phi_fn, config=truss)
+    return np.array(res.points[:n]), state["tris"], res
+
+
+def folded(points, tris, phi_fn) -> np.ndarray:
+    """(t,) bool: triangles whose normal opposes the level-set gradient at their centroid (folds)."""
+    p = points[tris]
+    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    g = level_set_gradient(phi_fn, p.mean(axis=1))
+    return np.einsum("ij,ij->i", nrm, g) <= 0
+
+
+def improve(points, tris, on_plane, phi_fn, h_fn, box, config: SurfaceConfig, cut: bool):
+    """Rounds of 1-to-4 refinement (edges > refine_ratio * h), quality flips and truss relaxation.
+
+    A relaxation that folds a triangle is retried with dt / 5 and otherwise dropped (back off,
+    never delete triangles). Returns (points, tris, on_plane).
+    """
+    truss = config.truss
+    for _ in range(config.improve_rounds):
+        edges, _ = half_edges(tris, len(points))
+        length = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
+        h_mid = np.asarray(h_fn(jnp.asarray(0.5 * (points[edges[:, 0]] + points[edges[:, 1]]))))
+        split = length > config.refine_ratio * h_mid
+        if split.any():
+            n0 = len(points)
+            points, tris, parents = refine(points, tris, split)
+            flags = on_plane[parents[:, 0]] & on_plane[parents[:, 1]]
+            on_plane = np.vstack([on_plane, flags])
+            new = np.arange(n0, len(points))
+            points[new], _, _ = project(phi_fn, points[new], flags, config.newton_steps)
+        cells = triangle_cells(points, tris, box) if cut else None
+        allowed = (lambda t1, t2: (cells[t1] == cells[t2]).all(axis=1)) if cut else None
+        tris, _ = flip_edges(points, tris, allowed)
+        for attempt in range(2):
+            cfg = truss if attempt == 0 else dataclasses.replace(truss, dt=truss.dt * truss.dt_retry_factor)
+            q, t, _ = _relax(points, tris, on_plane, phi_fn, h_fn, box, cfg, cut)
+            if not folded(q, t, phi_fn).any():
+                points, tris = q, t
+                break
+    return points, tris, on_plane
+
+
+def cut_by_box(points, tris, on_plane, phi_fn, box, h_fn, config: SurfaceConfig):
+    """Cut an unwrapped closed surface by every box plane k L_a it crosses.
+
+    Vertices within snap_fraction * h of a plane are first moved onto it (projected along the
+    plane onto phi = 0; reverted where that fails), then crossing triangles are split at new
+    vertices on the plane and on the level set. Returns (points, tris, on_plane).
+    """
+    L = np.asarray(box, float)
+    for a in range(3):
+        lo, hi = points[:, a].min(), points[:, a].max()
+        for k in range(int(np.ceil(lo / L[a])), int(np.floor(hi / L[a])) + 1):
+            value = k * L[a]
+            h_loc = np.asarray(h_fn(jnp.asarray(points)))
+            tol = config.snap_fraction * float(np.min(h_loc))
+            cand = snap_candidates(points, tris, on_plane, a, value, tol)
+            if cand.size:
+                old = points[cand].copy()
+                moved = old.copy()
+                moved[:, a] = value
+                flags = on_plane[cand].copy()
+                flags[:, a] = True
+                q, phi, _ = project(phi_fn, moved, flags, config.newton_steps)
+                good = (np.abs(phi) < 1e-9 * tol) & (np.linalg.norm(q - old, axis=1) < 2 * tol)
+                points[cand[good]] = q[good]
+                on_plane[cand[good]] = flags[good]
+            points, tris, on_plane, new = cut_plane(points, tris, on_plane, a, value)
+            if new.size:
+                points[new], _, _ = project(phi_fn, points[new], on_plane[new], config.newton_steps)
+    return points, tris, on_plane
+
+
+def wrap_pieces(points, tris, on_plane, box):
+    """Translate every triangle into the box by its cell; a vertex shared by pieces of different
+    cells is copied once per cell. Plane coordinates become exactly 0 or L.
+
+    Returns:
+        (points (m, 3) in [0, L], tris (t, 3), source (m,) unwrapped vertex of each copy).
+    """
+    L = np.asarray(box, float)
+    cells = triangle_cells(points, tris, box)
+    v = tris.reshape(-1)
+    c = np.repeat(cells, 3, axis=0)
+    key = np.concatenate([v[:, None], c], axis=1)
+    uniq, inv = np.unique(key, axis=0, return_inverse=True)
+    src, cell = uniq[:, 0], uniq[:, 1:]
+    p = points[src] - cell * L
+    k = np.round(points[src] / L)
+    p = np.where(on_plane[src], (k - cell) * L, p)
+    return p, inv.reshape(-1, 3).astype(np.int64), src
+
+
+def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()):
+    """Closed surface of one inclusion, improved, cut by the box and wrapped into it.
+
+    Args:
+        inclusion: geometry Inclusion (phi_fn, lower, upper unwrapped bounds).
+        h_fn: JAX size callable (see :func:`as_size_fn`). box: (3,) lengths.
+    Returns:
+        dict with points (m, 3) in [0, L], triangles (t, 3) oriented outwards, unwrapped points/triangles.
+    """
+    phi_fn = inclusion.phi_fn
+    lower, upper = np.asarray(inclusion.lower, float), np.asarray(inclusion.upper, float)
+    centre = jnp.asarray(((lower + upper) / 2)[None])
+    h0 = float(np.asarray(h_fn(centre))[0])
+    step = min(config.mc_step * h0, float(np.min(upper - lower)) / 4)
+    pts, tris = extract(phi_fn, lower, upper, step)
+    if len(tris) < 4:
+        raise MeshingError(f"surface stage, inclusion {inclusion.id}: marching cubes found no closed surface")
+    pts, _, _ = project(phi_fn, pts, np.zeros(pts.shape, bool), config.newton_steps)
+    on_plane = np.zeros(pts.shape, bool)
+    pts, tris, on_plane = improve(pts, tris, on_plane, phi_fn, h_fn, box, config, cut=False)
+    L = np.asarray(box, float)
+    crosses = (np.floor(pts.min(0) / L) != np.floor(pts.max(0) / L)).any()
+    if crosses:
+        for _ in range(3):
+            pts, tris, on_plane = cut_by_box(pts, tris, on_plane, phi_fn, box, h_fn, config)
+            pts, tris, on_plane = improve(pts, tris, on_plane, phi_fn, h_fn, box, config, cut=True)
+            if not straddling(pts, tris, box).any():
+                break
+        else:  # last resort: cut what still straddles without snapping
+            pts, tris, on_plane = cut_by_box(pts, tris, on_plane, phi_fn, box, h_fn,
+                                             dataclasses.replace(config, snap_fraction=0.0))
+    wp, wt, src = wrap_pieces(pts, tris, on_plane, box)
+    return {"points": wp, "triangles": wt, "source": src, "unwrapped_points": pts, "unwrapped_triangles": tris}

@@ -1,0 +1,234 @@
+"""NumPy topology of triangulated surfaces (paper 4.4): edge tables, 1-to-4 refinement with
+conforming closure, quality-raising edge flips, and cutting by the box planes.
+
+Never imports jax. Triangles are (t, 3) int64 with a consistent orientation, which every
+operation here preserves.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from ._quality import cell_quality
+
+
+def half_edges(tris: np.ndarray, n: int):
+    """Edges of a triangulated surface, each once.
+
+    Args:
+        tris: (t, 3) int. n: number of points.
+    Returns:
+        (edges (e, 2) sorted rows, tri_edge (t, 3) edge id of half-edge k = (tri[k], tri[k+1])).
+    """
+    a = tris.reshape(-1)
+    b = tris[:, [1, 2, 0]].reshape(-1)
+    key = np.minimum(a, b) * n + np.maximum(a, b)
+    uniq, inv = np.unique(key, return_inverse=True)
+    return np.stack([uniq // n, uniq % n], axis=1), inv.reshape(-1, 3)
+
+
+def edge_pairs(tris: np.ndarray, n: int):
+    """Interior edges of a manifold surface with their two triangles.
+
+    Returns:
+        (u, v, c, d, t1, t2): edge u-v, t1 = (u, v, c) in its orientation, t2 = (v, u, d).
+    """
+    t = len(tris)
+    ti = np.repeat(np.arange(t), 3)
+    u, v, w = tris.reshape(-1), tris[:, [1, 2, 0]].reshape(-1), tris[:, [2, 0, 1]].reshape(-1)
+    key = np.minimum(u, v) * n + np.maximum(u, v)
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    first = np.flatnonzero((ks[:-1] == ks[1:]) & np.r_[True, ks[1:-1] != ks[:-2]])
+    i, j = order[first], order[first + 1]
+    return u[i], v[i], w[i], w[j], ti[i], ti[j]
+
+
+def refine(points: np.ndarray, tris: np.ndarray, split: np.ndarray):
+    """Split the marked edges at their midpoints; triangles with 1, 2 or 3 split edges become 2, 3
+    or 4 (the regular 1-to-4 of Fig. 11), which keeps the mesh conforming without a closure pass.
+
+    Args:
+        points: (n, 3). tris: (t, 3). split: (e,) bool over ``half_edges(tris, n)[0]``.
+    Returns:
+        (points (n + s, 3) with midpoints appended (not projected), tris, parents (s, 2) edge of each new point).
+    """
+    n = len(points)
+    edges, te = half_edges(tris, n)
+    new_id = np.full(len(edges), -1, np.int64)
+    new_id[split] = n + np.arange(int(split.sum()))
+    mid = 0.5 * (points[edges[split, 0]] + points[edges[split, 1]])
+    m = new_id[te]  # (t, 3) midpoint of half-edge k or -1
+    cnt = (m >= 0).sum(axis=1)
+    out = [tris[cnt == 0]]
+    rows = np.arange(len(tris))
+    # one split edge: rotate it to position 0
+    r = rows[cnt == 1]
+    k = np.argmax(m[r] >= 0, axis=1)
+    v = np.stack([tris[r, (k + s) % 3] for s in range(3)], axis=1)
+    mk = m[r, k]
+    out += [np.stack([v[:, 0], mk, v[:, 2]], 1), np.stack([mk, v[:, 1], v[:, 2]], 1)]
+    # two split edges: rotate the unsplit one to position 2
+    r = rows[cnt == 2]
+    k = (np.argmax(m[r] < 0, axis=1) + 1) % 3
+    v = np.stack([tris[r, (k + s) % 3] for s in range(3)], axis=1)
+    m0, m1 = m[r, k], m[r, (k + 1) % 3]
+    out += [np.stack([m0, v[:, 1], m1], 1), np.stack([v[:, 0], m0, m1], 1), np.stack([v[:, 0], m1, v[:, 2]], 1)]
+    r = rows[cnt == 3]
+    a, b, c = tris[r].T
+    m0, m1, m2 = m[r].T
+    out += [np.stack(x, 1) for x in ((a, m0, m2), (m0, b, m1), (m2, m1, c), (m0, m1, m2))]
+    return np.vstack([points, mid]), np.vstack(out).astype(np.int64), edges[split]
+
+
+def _normals(p):
+    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    return nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+
+
+def flip_edges(
+    points: np.ndarray,
+    tris: np.ndarray,
+    allowed: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    *,
+    max_rounds: int = 20,
+    min_cos: float = 0.5,
+    tol: float = 1e-6,
+) -> tuple[np.ndarray, int]:
+    """Flip edges of a closed surface where the smaller quality of the two triangles rises.
+
+    A flip needs a nearly flat pair (normals' cosine > min_cos before and after), a new edge that
+    does not exist yet and end vertices of degree > 3 (the surface stays a manifold).
+
+    Args:
+        points: (n, 3). tris: (t, 3) oriented. allowed: optional (t1, t2) -> (k,) bool, pairs of
+            triangles whose common edge may flip (e.g. not a trace edge).
+    Returns:
+        (triangles, number of flips).
+    """
+    tri = np.array(tris, dtype=np.int64, copy=True)
+    n = len(points)
+    total = 0
+    for _ in range(max_rounds):
+        u, v, c, d, t1, t2 = edge_pairs(tri, n)
+        ok = (c != d) if allowed is None else (c != d) & allowed(t1, t2)
+        deg = np.bincount(tri.reshape(-1), minlength=n)
+        ok &= (deg[u] > 3) & (deg[v] > 3)
+        n1, n2 = _normals(points[tri[t1]]), _normals(points[tri[t2]])
+        ok &= np.sum(n1 * n2, axis=1) > min_cos
+        new1 = np.stack([u, d, c], 1)
+        new2 = np.stack([d, v, c], 1)
+        m1, m2 = _normals(points[new1]), _normals(points[new2])
+        ok &= (np.sum(m1 * m2, 1) > min_cos) & (np.sum(m1 * (n1 + n2), 1) > 0) & (np.sum(m2 * (n1 + n2), 1) > 0)
+        q = cell_quality(points, tri)
+        gain = np.minimum(cell_quality(points, new1), cell_quality(points, new2)) - np.minimum(q[t1], q[t2])
+        cand = np.flatnonzero(ok & (gain > tol))
+        if cand.size == 0:
+            break
+        existing = set((np.minimum(u, v) * n + np.maximum(u, v)).tolist())
+        used = np.zeros(len(tri), bool)
+        flipped = 0
+        for g in cand[np.argsort(-gain[cand])]:
+            a, b = t1[g], t2[g]
+            key = min(c[g], d[g]) * n + max(c[g], d[g])
+            if used[a] or used[b] or key in existing:
+                continue
+            used[a] = used[b] = True
+            existing.add(key)
+            tri[a], tri[b] = new1[g], new2[g]
+            flipped += 1
+        total += flipped
+        if flipped == 0:
+            break
+    return tri, total
+
+
+def plane_flags(points: np.ndarray, box) -> np.ndarray:
+    """(n, 3) bool: coordinate a is exactly on a box plane k * L_a (set so by construction)."""
+    L = np.asarray(box, dtype=float)
+    return points == np.round(points / L) * L
+
+
+def snap_candidates(points, tris, on_plane, axis: int, value: float, tol: float) -> np.ndarray:
+    """Vertices within tol of the plane x_axis = value to snap onto it, chosen greedily (closest
+    first) so that no triangle gets all three vertices on the plane."""
+    dist = np.abs(points[:, axis] - value)
+    cand = np.flatnonzero((dist < tol) & ~on_plane[:, axis])
+    if cand.size == 0:
+        return cand
+    flag = on_plane[:, axis] & (points[:, axis] == value)
+    vt = [[] for _ in range(len(points))]
+    near = np.flatnonzero(np.isin(tris, cand).any(axis=1))
+    for t in near:
+        for k in tris[t]:
+            vt[k].append(t)
+    chosen = []
+    for i in cand[np.argsort(dist[cand])]:
+        if all(np.count_nonzero(flag[tris[t]]) < 2 for t in vt[i]):
+            flag[i] = True
+            chosen.append(i)
+    return np.asarray(chosen, np.int64)
+
+
+def cut_plane(points, tris, on_plane, axis: int, value: float):
+    """Split the triangles crossing the plane x_axis = value; new vertices lie on the plane
+    (exactly), linearly interpolated (the caller projects them onto the level set).
+
+    Args:
+        points: (n, 3). tris: (t, 3). on_plane: (n, 3) bool plane flags.
+    Returns:
+        (points, tris, on_plane, new (k,) ids of the new vertices).
+    """
+    n = len(points)
+    x = points[:, axis]
+    s = np.where(on_plane[:, axis] & (x == value), 0, np.sign(x - value)).astype(np.int64)
+    edges, te = half_edges(tris, n)
+    cross = s[edges[:, 0]] * s[edges[:, 1]] < 0
+    if not cross.any():
+        return points, tris, on_plane, np.zeros(0, np.int64)
+    e = edges[cross]
+    pa, pb = points[e[:, 0]], points[e[:, 1]]
+    t = (value - pa[:, axis]) / (pb[:, axis] - pa[:, axis])
+    new = pa + t[:, None] * (pb - pa)
+    flags = on_plane[e[:, 0]] & on_plane[e[:, 1]]
+    new = np.where(flags, pa, new)  # shared planes keep their exact coordinate
+    new[:, axis] = value
+    flags[:, axis] = True
+    new_id = np.full(len(edges), -1, np.int64)
+    new_id[cross] = n + np.arange(len(e))
+    m = new_id[te]
+    keep = (m < 0).all(axis=1)
+    out = [tris[keep]]
+    for r in np.flatnonzero(~keep):
+        a = tris[r]
+        k = int(np.flatnonzero(m[r] >= 0)[0])
+        if (m[r] >= 0).sum() == 1:  # the opposite vertex is on the plane
+            v0, v1, v2 = a[k], a[(k + 1) % 3], a[(k + 2) % 3]
+            mk = m[r, k]
+            out.append(np.array([[v0, mk, v2], [mk, v1, v2]]))
+            continue
+        # two crossing edges: rotate the lone vertex to position 1 (edges k, k+1 cross)
+        k = (int(np.flatnonzero(m[r] < 0)[0]) + 1) % 3
+        v0, v1, v2 = a[k], a[(k + 1) % 3], a[(k + 2) % 3]
+        m0, m1 = m[r, k], m[r, (k + 1) % 3]
+        out.append(np.array([[m0, v1, m1], [v0, m0, m1], [v0, m1, v2]]))
+    points = np.vstack([points, new])
+    on_plane = np.vstack([on_plane, flags])
+    return points, np.vstack(out).astype(np.int64), on_plane, n + np.arange(len(e))
+
+
+def triangle_cells(points: np.ndarray, tris: np.ndarray, box) -> np.ndarray:
+    """(t, 3) int periodic cell of each triangle (floor of its centroid / L)."""
+    L = np.asarray(box, dtype=float)
+    return np.floor(points[tris].mean(axis=1) / L).astype(np.int64)
+
+
+def straddling(points: np.ndarray, tris: np.ndarray, box) -> np.ndarray:
+    """(t,) bool: triangles whose vertices are not all in the closed cell of their centroid."""
+    L = np.asarray(box, dtype=float)
+    c = triangle_cells(points, tris, box)
+    lo, hi = c[:, None, :] * L, (c[:, None, :] + 1) * L
+    p = points[tris]
+    return ((p < lo) | (p > hi)).any(axis=(1, 2))
