@@ -1,0 +1,387 @@
+"""The volume step (paper 4.6): a tetrahedral mesh that keeps every surface triangle, and its labels.
+
+NumPy/SciPy only (never imports jax). Nodes = surface nodes + interior nodes kept away from the
+surfaces; Delaunay by Qhull (the convex hull is the box: the 8 corners and the box faces are surface
+nodes); missing surface triangles recovered (`_volume_recover`); phases by flood fill across the
+faces that are not surface triangles. The relaxation and sliver removal live in `_volume_relax`.
+DESIGN.md sections 2-3.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import Delaunay, cKDTree
+
+from ._errors import MeshingError
+from ._mesh import Mesh, facet_table
+from ._quality import signed_volumes
+from ._surface_mesh import OUTSIDE, SurfaceMesh
+from ._volume_recover import (
+    distance_to_surface,
+    encroached_free_nodes,
+    missing_triangles,
+    split_edges,
+    triangle_keys,
+)
+
+__all__ = ["VolumeConfig", "interior_nodes", "conforming_delaunay", "label_cells", "tetrahedralize"]
+
+
+@dataclass(frozen=True)
+class VolumeConfig:
+    """Parameters of the volume step, validated on creation.
+
+    Attributes:
+        clearance: interior nodes closer than clearance * h to a surface triangle are removed.
+        jitter: deterministic jitter of interior nodes, a fraction of h (breaks lattice degeneracy).
+        seed: seed of the jitter.
+        qhull_options: options of scipy.spatial.Delaunay.
+        max_recovery_rounds: Delaunay + recovery rounds before MeshingError.
+        flat_eps: a tet is flat when |V| <= flat_eps * l_max^3.
+        relax: run the truss relaxation in `tetrahedralize` (needs jax; `_volume_relax`).
+        truss: a jaxmesh._truss.TrussConfig for the relaxation, or None for the volume defaults.
+        ball_vertex_stiffness: ball-vertex spring constant in the relaxation (section 4.7).
+        sliver_angle: sliver removal targets tets with a dihedral angle below this (degrees).
+        sliver_passes: passes of vertex moves / flips / insertions.
+    """
+
+    clearance: float = 0.6
+    jitter: float = 1e-3
+    seed: int = 0
+    qhull_options: str = "Qbb Qc Qz Q12"
+    max_recovery_rounds: int = 12
+    flat_eps: float = 1e-10
+    relax: bool = True
+    truss: Any = None
+    ball_vertex_stiffness: float = 1.0
+    sliver_angle: float = 10.0
+    sliver_passes: int = 6
+
+    def __post_init__(self):
+        for name, lo, hi in (("clearance", 0.0, 2.0), ("jitter", 0.0, 0.5), ("flat_eps", 0.0, 1e-3),
+                             ("sliver_angle", 0.0, 60.0), ("ball_vertex_stiffness", 0.0, np.inf)):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and lo <= v <= hi):
+                raise ValueError(f"VolumeConfig.{name}: expected a number in [{lo}, {hi}], got {v!r}; "
+                                 "hint: see the VolumeConfig docstring for the defaults")
+        for name in ("max_recovery_rounds", "sliver_passes", "seed"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 0):
+                raise ValueError(f"VolumeConfig.{name}: expected an integer >= 0, got {v!r}")
+
+
+def _check_h(h_fn, points: np.ndarray) -> np.ndarray:
+    h = np.asarray(h_fn(points), dtype=float).reshape(-1)
+    if h.shape != (len(points),) or not np.all(np.isfinite(h)) or (h.size and h.min() <= 0):
+        raise ValueError(f"h_fn: expected finite sizes > 0, one per point ({len(points)},), got shape {h.shape}; "
+                         "hint: h_fn maps points (k, 3) to target edge lengths (k,)")
+    return h
+
+
+def _bcc(box: np.ndarray, a: float) -> np.ndarray:
+    """Body-centred cubic lattice of cube side ~a fitted to the box, shifted off the box planes."""
+    n = np.maximum(1, np.round(box / a)).astype(int)
+    step = box / n
+    axes = [(np.arange(k) + 0.25) * s for k, s in zip(n, step)]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    return np.concatenate([g, g + 0.5 * step])
+
+
+def interior_nodes(surface: SurfaceMesh, h_fn: Callable, config: VolumeConfig = VolumeConfig()) -> np.ndarray:
+    """Interior nodes: BCC lattices at h (one level per octave of h), away from the surface, jittered.
+
+    Args:
+        surface: the SurfaceMesh (its triangles repel the nodes). h_fn: NumPy points (k, 3) -> (k,).
+        config: clearance, jitter, seed.
+    Returns:
+        (k, 3) float64 points strictly inside the box.
+    """
+    box = np.asarray(surface.box, dtype=float)
+    probe = _bcc(box, box.min() / 16)
+    hp = _check_h(h_fn, probe)
+    h_hi, h_lo = float(hp.max()), float(hp.min())
+    levels = [h_hi]
+    while levels[-1] > 1.05 * h_lo and len(levels) < 8:
+        levels.append(levels[-1] / 2)
+    chunks = []
+    for k, a in enumerate(levels):  # keep lattice nodes where a <= h < 2a (coarsest: h >= a)
+        p = _bcc(box, a)
+        h = _check_h(h_fn, p)
+        keep = np.ones(len(p), bool)
+        if k:
+            keep &= h < 2 * a
+        if k < len(levels) - 1:
+            keep &= h >= a
+        chunks.append((p[keep], a))
+    pts = np.concatenate([c for c, _ in chunks]) if chunks else np.zeros((0, 3))
+    if len(levels) > 1:  # level transitions: drop nodes too close to an already accepted one
+        h = _check_h(h_fn, pts)
+        tree = cKDTree(pts)
+        pairs = tree.query_pairs(0.5 * float(h.min()), output_type="ndarray")
+        if len(pairs):
+            d = np.linalg.norm(pts[pairs[:, 0]] - pts[pairs[:, 1]], axis=1)
+            close = d < 0.5 * np.minimum(h[pairs[:, 0]], h[pairs[:, 1]])
+            drop = np.zeros(len(pts), bool)
+            for i, j in pairs[close]:  # greedy: keep the first of each close pair
+                if not drop[i]:
+                    drop[j] = True
+            pts = pts[~drop]
+    rng = np.random.default_rng(config.seed)
+    h = _check_h(h_fn, pts)
+    pts = pts + config.jitter * h[:, None] * rng.uniform(-1.0, 1.0, pts.shape)
+    dist = distance_to_surface(pts, surface, config.clearance * h)
+    inside = np.all((pts > 0) & (pts < box), axis=1)
+    return pts[inside & (dist >= config.clearance * h)]
+
+
+def delaunay_tets(points: np.ndarray, box, config: VolumeConfig = VolumeConfig()) -> tuple[np.ndarray, dict]:
+    """Positively oriented Delaunay tets of points in a box whose hull is the box.
+
+    Flat tets (|V| <= flat_eps l_max^3, from cospherical points) are dropped when all four vertices
+    lie on one box plane (they only choose a diagonal of the hull); elsewhere they are reported.
+
+    Returns:
+        (cells (m, 4) int64, info {'flat_dropped', 'flat_interior', 'coplanar'}).
+    """
+    tri = Delaunay(points, qhull_options=config.qhull_options)
+    cells = np.asarray(tri.simplices, dtype=np.int64)
+    vol = signed_volumes(points, cells)
+    neg = vol < 0
+    cells[neg, :2] = cells[neg, 1::-1]
+    p = points[cells]
+    lmax = np.max([np.linalg.norm(p[:, i] - p[:, j], axis=1) for i, j in
+                   ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))], axis=0)
+    flat = np.abs(vol) <= config.flat_eps * lmax**3
+    box = np.asarray(box, dtype=float)
+    on_plane = np.zeros(len(cells), bool)
+    for a in range(3):
+        for s in (0.0, 1.0):
+            on_plane |= np.all(np.abs(p[:, :, a] - s * box[a]) <= 1e-9 * box[a], axis=1)
+    info = {"flat_dropped": int((flat & on_plane).sum()), "flat_interior": int((flat & ~on_plane).sum()),
+            "coplanar": int(len(tri.coplanar))}
+    return cells[~(flat & on_plane)], info
+
+
+def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: VolumeConfig = VolumeConfig(),
+                        project_fn: Callable | None = None) -> tuple[np.ndarray, np.ndarray, SurfaceMesh, dict]:
+    """Delaunay of surface + interior nodes in which every surface triangle is a tet face.
+
+    Rounds: Delaunay -> missing triangles -> remove the interior nodes in their smallest
+    circumscribed balls, or (none there) split their longest edge (`split_edges`) -> repeat.
+
+    Args:
+        surface: SurfaceMesh; interior: (k, 3) interior nodes.
+        config: VolumeConfig. project_fn: see `split_edges` (projects interface midpoints).
+    Returns:
+        (points (n, 3) = surface.points then kept interior nodes, cells (m, 4), the possibly
+        refined SurfaceMesh, info counts).
+    Raises:
+        MeshingError('volume', ...) naming the inclusion when recovery does not finish.
+    """
+    interior = np.asarray(interior, dtype=float).reshape(-1, 3)
+    info = {"rounds": 0, "missing_first": 0, "interior_removed": 0, "surface_splits": 0, "flat_dropped": 0,
+            "flat_interior": 0}
+    for rnd in range(config.max_recovery_rounds + 1):
+        ns = surface.n_points
+        points = np.concatenate([surface.points, interior])
+        cells, dinfo = delaunay_tets(points, surface.box, config)
+        info["flat_dropped"] += dinfo["flat_dropped"]
+        if dinfo["coplanar"]:  # Qhull left nodes out (duplicates): a surface node must never be one
+            raise MeshingError("volume", f"Qhull skipped {dinfo['coplanar']} coincident nodes; hint: the "
+                               "surface holds duplicate nodes or interior nodes coincide with it")
+        miss = missing_triangles(surface.triangles, cells, len(points))
+        info["rounds"] = rnd
+        if rnd == 0:
+            info["missing_first"] = int(miss.sum())
+        if not miss.any() and not dinfo["flat_interior"]:
+            info["flat_interior"] = 0
+            return points, cells, surface, info
+        if rnd == config.max_recovery_rounds:
+            break
+        if not miss.any():  # flat interior tets only: re-jitter the interior nodes
+            rng = np.random.default_rng(config.seed + 1000 + rnd)
+            span = np.ptp(interior, axis=0).max(initial=1.0) / max(len(interior), 1) ** (1 / 3)
+            interior = interior + 1e-3 * span * rng.uniform(-1, 1, interior.shape)
+            continue
+        tris = surface.triangles[miss]
+        free = np.zeros(len(points), bool)
+        free[ns:] = True
+        enc = encroached_free_nodes(points, tris, free)
+        if len(enc):
+            keep = np.ones(len(interior), bool)
+            keep[enc - ns] = False
+            interior = interior[keep]
+            info["interior_removed"] += int(len(enc))
+            continue
+        P = surface.points[tris]
+        el = np.linalg.norm(P[:, [1, 2, 0]] - P, axis=-1)  # edge j = (j, j+1)
+        j = np.argmax(el, axis=1)
+        edges = np.stack([tris[np.arange(len(tris)), j], tris[np.arange(len(tris)), (j + 1) % 3]], 1)
+        surface, added = split_edges(surface, edges, project_fn)
+        info["surface_splits"] += int(added)
+    sides = surface.sides[miss]
+    k = int(sides[sides > 0][0]) if np.any(sides > 0) else None
+    raise MeshingError("volume", f"{int(miss.sum())} surface triangles still missing and "
+                       f"{dinfo['flat_interior']} flat tets after {config.max_recovery_rounds} recovery rounds "
+                       "(hint: improve the surface quality or raise max_recovery_rounds)", inclusion=k)
+
+
+def label_cells(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh) -> tuple[np.ndarray, dict]:
+    """Region id of every tet: flood fill across faces that are not surface triangles.
+
+    Each face-connected component takes the region on its side of the surface triangles that bound
+    it (the right-hand normal points from sides[:, 0] to sides[:, 1]).
+
+    Returns:
+        (inclusion_id (m,) int64, info {'components', 'conflicts'}).
+    Raises:
+        MeshingError if a component has no bounding triangle or its bounding triangles disagree.
+    """
+    n, m = len(points), len(cells)
+    table = facet_table(cells, n)
+    fkeys = triangle_keys(table.facets, n)  # sorted: facet_table orders facets by the same packed key
+    skeys = triangle_keys(surface.triangles, n)
+    barrier = np.zeros(len(fkeys), bool)
+    fidx = np.searchsorted(fkeys, skeys)
+    if np.any(fidx >= len(fkeys)) or np.any(fkeys[np.minimum(fidx, len(fkeys) - 1)] != skeys):
+        raise MeshingError("volume", "labels: some surface triangles are not tet faces")
+    barrier[fidx] = True
+    two, owners = table.pairs()
+    open_ = ~barrier[two]
+    a, b = owners[open_, 0], owners[open_, 1]
+    graph = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(m, m))
+    n_comp, comp = connected_components(graph, directed=False)
+    cells_by, offsets = table.owners()
+    votes = []  # (component, region)
+    tri = surface.triangles
+    for rep in range(2):  # up to two cells per surface face
+        has = table.counts[fidx] > rep
+        c = cells_by[offsets[fidx[has]] + rep]
+        t = tri[has]
+        apex = np.array([[v for v in cell if v not in tt][0] for cell, tt in zip(cells[c], t)], dtype=np.int64) \
+            if len(c) else np.zeros(0, np.int64)
+        x = points
+        side = np.einsum("ij,ij->i", np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]]), x[apex] - x[t[:, 0]])
+        region = np.where(side > 0, surface.sides[has, 1], surface.sides[has, 0])
+        votes.append(np.stack([comp[c], region], 1))
+    votes = np.concatenate(votes)
+    label = np.full(n_comp, -2, dtype=np.int64)
+    conflicts = 0
+    for cid, regions in zip(*_group(votes[:, 0], votes[:, 1])):
+        vals, cnt = np.unique(regions, return_counts=True)
+        label[cid] = vals[np.argmax(cnt)]
+        conflicts += int(len(vals) > 1)
+    bad = np.flatnonzero(label < 0)
+    if len(bad) or conflicts:
+        k = [int(v) for v in np.unique(votes[:, 1]) if v > 0]
+        raise MeshingError("volume", f"labels: {len(bad)} components without a valid region ({OUTSIDE} means a "
+                           f"box-face triangle is oriented inwards), {conflicts} with conflicting sides; hint: "
+                           "check the orientation of the surface triangles", inclusion=k[0] if k else None)
+    return label[comp], {"components": int(n_comp), "conflicts": conflicts}
+
+
+def _group(keys: np.ndarray, values: np.ndarray):
+    order = np.argsort(keys, kind="stable")
+    k, v = keys[order], values[order]
+    uniq, start = np.unique(k, return_index=True)
+    return uniq, np.split(v, start[1:])
+
+
+def tetrahedralize(surface: SurfaceMesh, interior_points: np.ndarray | None = None, *, h_fn: Callable,
+                   config: VolumeConfig = VolumeConfig(), project_fn: Callable | None = None,
+                   label_fn: Callable | None = None, h_jax_fn: Callable | None = None,
+                   return_surface: bool = False):
+    """Tetrahedral mesh of a periodic RVE that contains every (possibly refined) surface triangle.
+
+    Args:
+        surface: SurfaceMesh (interfaces + box faces, periodic pairs).
+        interior_points: (k, 3) interior nodes (e.g. octree nodes), or None for BCC lattices on h.
+            They are filtered by clearance * h from the surface and jittered.
+        h_fn: NumPy size function points (k, 3) -> (k,).
+        config: VolumeConfig.
+        project_fn: projection of split interface midpoints (see `levelset_projector`).
+        label_fn: optional field labels points (k, 3) -> (k,) ids, checked at the centroids of
+            cells with no surface vertex (MeshingError on disagreement).
+        h_jax_fn: JAX size function for the relaxation (default: h_fn sampled on a periodic grid).
+        return_surface: also return the SurfaceMesh actually kept (refined if recovery split edges).
+    Returns:
+        Mesh (positively oriented cells, inclusion_id, periodic_pairs); with return_surface,
+        (Mesh, SurfaceMesh).
+
+    Example: ``mesh = tetrahedralize(surface, h_fn=lambda p: np.full(len(p), 0.1))``.
+    """
+    if not isinstance(surface, SurfaceMesh):
+        raise ValueError(f"tetrahedralize expects a SurfaceMesh, got {type(surface).__name__}; "
+                         "hint: build it with jaxmesh._surface_mesh.SurfaceMesh")
+    if not isinstance(config, VolumeConfig):
+        raise ValueError(f"config: expected VolumeConfig, got {type(config).__name__}")
+    if not callable(h_fn):
+        raise ValueError(f"h_fn: expected a callable points (k, 3) -> (k,), got {type(h_fn).__name__}")
+    t0 = time.perf_counter()
+    times = {}
+    if interior_points is None:
+        interior = interior_nodes(surface, h_fn, config)
+    else:
+        interior = np.asarray(interior_points, dtype=float)
+        if interior.ndim != 2 or interior.shape[1] != 3 or not np.all(np.isfinite(interior)):
+            raise ValueError(f"interior_points: expected finite (k, 3) points, got shape {interior.shape}")
+        box = np.asarray(surface.box)
+        h = _check_h(h_fn, interior) if len(interior) else np.zeros(0)
+        rng = np.random.default_rng(config.seed)
+        interior = interior + config.jitter * h[:, None] * rng.uniform(-1, 1, interior.shape)
+        dist = distance_to_surface(interior, surface, config.clearance * h)
+        interior = interior[np.all((interior > 0) & (interior < box), axis=1) & (dist >= config.clearance * h)]
+    times["interior_nodes"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    points, cells, surface, info = conforming_delaunay(surface, interior, config, project_fn)
+    times["delaunay_recovery"] = time.perf_counter() - t1
+    meta = {"volume": dict(info), "times": times}
+    if config.relax:
+        from ._volume_relax import relax_volume  # jax is imported only here
+
+        mesh = _make_mesh(points, cells, surface, meta)
+        mesh = relax_volume(mesh, surface, h_fn, config, h_jax_fn=h_jax_fn, project_fn=project_fn)
+    else:
+        mesh = _make_mesh(points, cells, surface, meta)
+    if label_fn is not None:
+        check_labels(mesh, surface, label_fn)
+    mesh.metadata["times"]["volume_total"] = time.perf_counter() - t0
+    return (mesh, surface) if return_surface else mesh
+
+
+def _make_mesh(points, cells, surface, meta) -> Mesh:
+    t = time.perf_counter()
+    ids, linfo = label_cells(points, cells, surface)
+    meta = dict(meta)
+    meta["volume"] = {**meta.get("volume", {}), **linfo, "n_points": len(points), "n_cells": len(cells),
+                      "n_surface_points": surface.n_points, "n_surface_triangles": surface.n_triangles}
+    meta.setdefault("times", {})["labels"] = time.perf_counter() - t
+    pairs = {a: np.asarray(p, dtype=np.int64) for a, p in surface.periodic_pairs.items()} or None
+    return Mesh(points, cells, ids, surface.box, periodic=True, periodic_pairs=pairs, metadata=meta)
+
+
+def check_labels(mesh: Mesh, surface: SurfaceMesh, label_fn: Callable) -> int:
+    """Compare the flood-fill labels with label_fn at the centroids of cells with no surface vertex.
+
+    Returns the number of checked cells; raises MeshingError naming an inclusion on disagreement.
+    """
+    deep = np.all(mesh.cells >= surface.n_points, axis=1)
+    if not deep.any():
+        return 0
+    cen = mesh.points[mesh.cells[deep]].mean(axis=1)
+    lab = np.asarray(label_fn(cen)).reshape(-1).astype(np.int64)
+    bad = lab != mesh.inclusion_id[deep]
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise MeshingError("volume", f"labels: {int(bad.sum())} of {int(deep.sum())} deep cells disagree with the "
+                           f"field (e.g. mesh {int(mesh.inclusion_id[deep][i])} vs field {int(lab[i])})",
+                           inclusion=int(max(lab[i], mesh.inclusion_id[deep][i])))
+    return int(deep.sum())
+

@@ -1,0 +1,256 @@
+"""Surface-triangle recovery for the volume step (paper 4.6), NumPy only (never imports jax).
+
+A surface triangle missing from a Delaunay tetrahedralisation is not Delaunay: some node lies in
+every sphere through its three vertices, in particular in its smallest circumscribed ball. The
+recovery removes free (interior) nodes from those balls and, where surface nodes encroach, splits
+the triangle's longest edge at its midpoint (projected back onto the level set for interface
+edges, kept on the plane and mirrored on the periodic partner faces for box edges), updating the
+SurfaceMesh consistently.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ._errors import MeshingError
+from ._surface_mesh import INTERFACE, SurfaceMesh
+
+__all__ = [
+    "triangle_keys",
+    "missing_triangles",
+    "point_triangle_distance",
+    "encroached_free_nodes",
+    "split_edges",
+    "levelset_projector",
+]
+
+
+def triangle_keys(tris: np.ndarray, n: int) -> np.ndarray:
+    """One int64 key per triangle (sorted vertex ids packed base n); needs n**3 < 2**62."""
+    s = np.sort(np.asarray(tris, dtype=np.int64), axis=1)
+    if n**3 >= 2**62:
+        raise ValueError(f"triangle_keys: {n} points do not fit a packed int64 key; hint: mesh fewer than 1.6M nodes")
+    return (s[:, 0] * n + s[:, 1]) * n + s[:, 2]
+
+
+def tet_face_keys(cells: np.ndarray, n: int) -> np.ndarray:
+    """Sorted unique keys of the 4 faces of every tet (m, 4)."""
+    faces = np.asarray(cells, dtype=np.int64)[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3)
+    return np.unique(triangle_keys(faces, n))
+
+
+def missing_triangles(triangles: np.ndarray, cells: np.ndarray, n: int) -> np.ndarray:
+    """(t,) bool: surface triangles that are not a face of any tet."""
+    return ~np.isin(triangle_keys(triangles, n), tet_face_keys(cells, n))
+
+
+def point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Euclidean distance from points p (k, 3) to triangles (a, b, c) (k, 3) each (Ericson's regions)."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+    bp, cp = p - b, p - c
+    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
+    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    tiny = np.finfo(float).tiny
+    # interior by default, then overwrite with the vertex / edge regions (later rules win)
+    denom = np.where(np.abs(va + vb + vc) > tiny, va + vb + vc, tiny)
+    v, w = vb / denom, vc / denom
+    q = a + v[:, None] * ab + w[:, None] * ac
+    e_bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
+    t = (d4 - d3) / np.where(e_bc, (d4 - d3) + (d5 - d6), 1.0)
+    q = np.where(e_bc[:, None], b + t[:, None] * (c - b), q)
+    e_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    t = d2 / np.where(e_ac, d2 - d6, 1.0)
+    q = np.where(e_ac[:, None], a + t[:, None] * ac, q)
+    e_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    t = d1 / np.where(e_ab, d1 - d3, 1.0)
+    q = np.where(e_ab[:, None], a + t[:, None] * ab, q)
+    q = np.where(((d6 >= 0) & (d5 <= d6))[:, None], c, q)
+    q = np.where(((d3 >= 0) & (d4 <= d3))[:, None], b, q)
+    q = np.where(((d1 <= 0) & (d2 <= 0))[:, None], a, q)
+    return np.linalg.norm(p - q, axis=1)
+
+
+def distance_to_surface(points: np.ndarray, surface: SurfaceMesh, radius: np.ndarray) -> np.ndarray:
+    """Distance from points (k, 3) to the nearest surface triangle, exact where it is < radius (k,).
+
+    Beyond radius the value is only known to be >= radius and is returned as inf.
+    """
+    tri = surface.triangles
+    P = surface.points[tri]  # (t, 3, 3)
+    cen = P.mean(axis=1)
+    reach = float(np.linalg.norm(P - cen[:, None], axis=-1).max(initial=0.0))
+    out = np.full(len(points), np.inf)
+    if not len(points) or not len(tri):
+        return out
+    lists = cKDTree(cen).query_ball_point(points, np.asarray(radius, dtype=float) + reach, return_sorted=False)
+    lens = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+    if lens.sum() == 0:
+        return out
+    pi = np.repeat(np.arange(len(points)), lens)
+    ti = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists if len(x)])
+    d = point_triangle_distance(points[pi], P[ti, 0], P[ti, 1], P[ti, 2])
+    np.minimum.at(out, pi, d)
+    return out
+
+
+def _circumballs(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest circumscribed balls of triangles P (k, 3, 3): centres (k, 3), radii (k,)."""
+    a, b, c = P[:, 0], P[:, 1], P[:, 2]
+    u, v = b - a, c - a
+    w = np.cross(u, v)
+    ww = np.maximum(np.einsum("ij,ij->i", w, w), np.finfo(float).tiny)
+    cen = a + (np.cross(w, u) * np.einsum("ij,ij->i", v, v)[:, None]
+               + np.cross(v, w) * np.einsum("ij,ij->i", u, u)[:, None]) / (2.0 * ww[:, None])
+    return cen, np.linalg.norm(cen - a, axis=1)
+
+
+def encroached_free_nodes(points: np.ndarray, tris: np.ndarray, free: np.ndarray, scale: float = 1.02) -> np.ndarray:
+    """Free nodes (indices) inside the smallest circumscribed ball (radius * scale) of any triangle."""
+    if not len(tris) or not free.any():
+        return np.zeros(0, dtype=np.int64)
+    cen, r = _circumballs(points[tris])
+    idx = np.flatnonzero(free)
+    lists = cKDTree(points[idx]).query_ball_point(cen, r * scale, return_sorted=False)
+    hit = [idx[np.asarray(x, dtype=np.int64)] for x in lists if len(x)]
+    return np.unique(np.concatenate(hit)) if hit else np.zeros(0, dtype=np.int64)
+
+
+def levelset_projector(inclusion_phi: Callable, *, steps: int = 8, rel_eps: float = 1e-7) -> Callable:
+    """A NumPy projection onto phi_k = 0 for split midpoints, from inclusion_phi(k, points) -> (m,).
+
+    Newton along the central-difference gradient with the locked (box-plane) components removed.
+    Returns project_fn(points (m, 3), inclusion (m,), locked (m, 3) bool) -> (m, 3).
+
+    Example: ``levelset_projector(ms.inclusion_phi)``.
+    """
+
+    def project(points, inclusion, locked):
+        out = np.array(points, dtype=float, copy=True)
+        scale = float(np.abs(out).max(initial=1.0))
+        eps = rel_eps * scale
+        for k in np.unique(inclusion):
+            sel = np.flatnonzero(inclusion == k)
+            x = out[sel]
+            for _ in range(steps):
+                phi = np.asarray(inclusion_phi(int(k), x), dtype=float)
+                g = np.stack([(np.asarray(inclusion_phi(int(k), x + eps * e), dtype=float)
+                               - np.asarray(inclusion_phi(int(k), x - eps * e), dtype=float)) / (2 * eps)
+                              for e in np.eye(3)], axis=1)
+                g = np.where(locked[sel], 0.0, g)
+                gg = np.einsum("ij,ij->i", g, g)
+                ok = gg > 0
+                x = x - np.where(ok, phi / np.where(ok, gg, 1.0), 0.0)[:, None] * g
+                if np.abs(phi).max(initial=0.0) < 1e-14 * scale:
+                    break
+            out[sel] = x
+        return out
+
+    return project
+
+
+def _plane_sides(x: np.ndarray, box: np.ndarray, tol: float = 1e-9) -> list[tuple[int, int]]:
+    """(axis, side) of every box plane the point x lies on."""
+    out = []
+    for a in range(3):
+        if abs(x[a]) <= tol * box[a]:
+            out.append((a, 0))
+        elif abs(x[a] - box[a]) <= tol * box[a]:
+            out.append((a, 1))
+    return out
+
+
+def split_edges(surface: SurfaceMesh, edges: np.ndarray, project_fn: Callable | None = None) -> tuple[SurfaceMesh, int]:
+    """Split surface edges at their midpoints, with their periodic images, keeping the surface consistent.
+
+    Every triangle holding a split edge becomes two with the same orientation, sides and kind.
+    Interface edges: the midpoint is projected onto its inclusion's level set with project_fn
+    (box-plane coordinates locked). Box-face edges: the midpoint stays on the plane(s) and every
+    periodic image of the edge is split at the translated midpoint; periodic_pairs are extended.
+
+    Args:
+        surface: the SurfaceMesh. edges: (k, 2) node ids of surface edges.
+        project_fn: project_fn(points (m, 3), inclusion (m,), locked (m, 3)) -> (m, 3), or None.
+    Returns:
+        (new SurfaceMesh, number of nodes added). Old node and triangle ids of untouched
+        triangles are unchanged; new nodes are appended.
+    """
+    box = np.asarray(surface.box, dtype=float)
+    pts = [p for p in surface.points]
+    tris, sides, kind = surface.triangles.copy(), surface.sides.copy(), surface.kind.copy()
+    inc = list(surface.node_inclusion)
+    partner = [dict() for _ in range(3)]  # axis -> {node: its translate on the other face}
+    for a, pp in surface.periodic_pairs.items():
+        for i, j in np.asarray(pp, dtype=np.int64).reshape(-1, 2):
+            partner[a][int(i)], partner[a][int(j)] = int(j), int(i)
+    new_pairs = {a: [] for a in range(3)}
+    done: set[tuple[int, int]] = set()
+    added = 0
+    for u, v in np.asarray(edges, dtype=np.int64).reshape(-1, 2):
+        u, v = int(u), int(v)
+        if (min(u, v), max(u, v)) in done:
+            continue
+        pu, pv = np.asarray(pts[u]), np.asarray(pts[v])
+        common = sorted(set(_plane_sides(pu, box)) & set(_plane_sides(pv, box)))
+        holders = np.flatnonzero((tris == u).any(axis=1) & (tris == v).any(axis=1))
+        if len(holders) == 0:
+            raise MeshingError("volume", f"recovery asked to split ({u}, {v}), which is not a surface edge")
+        iface = holders[kind[holders] == INTERFACE]
+        k_inc = int(sides[iface[0], 0]) if len(iface) else 0
+        m = 0.5 * (pu + pv)
+        for a, s in common:
+            m[a] = s * box[a]
+        if k_inc > 0 and project_fn is not None:
+            locked = np.zeros((1, 3), dtype=bool)
+            locked[0, [a for a, _ in common]] = True
+            m = np.asarray(project_fn(m[None], np.array([k_inc]), locked), dtype=float)[0]
+        # the edge and its periodic images: (u, v, new point) for every subset of the common axes
+        images = [(u, v, m)]
+        for a, s in common:
+            for iu, iv, im in list(images):
+                if iu not in partner[a] or iv not in partner[a]:
+                    raise MeshingError("volume", f"box edge ({iu}, {iv}) on {'xyz'[a]}={'0L'[s]} has no periodic "
+                                       "partner; hint: the surface's periodic_pairs must cover every box-face node")
+                jm = im.copy()
+                jm[a] = box[a] - im[a]  # im[a] is exactly 0 or L: the translate is exact too
+                images.append((partner[a][iu], partner[a][iv], jm))
+        ids = {}
+        for iu, iv, im in images:
+            key = (min(iu, iv), max(iu, iv))
+            if key in done:
+                continue
+            done.add(key)
+            w = len(pts)
+            pts.append(im)
+            inc.append(k_inc)
+            ids[key] = w
+            added += 1
+            hold = np.flatnonzero((tris == iu).any(axis=1) & (tris == iv).any(axis=1))
+            first, second = tris[hold].copy(), tris[hold].copy()
+            first[first == iv] = w  # (.., iu, .., w, ..): same orientation as the parent
+            second[second == iu] = w
+            tris[hold] = first
+            tris = np.concatenate([tris, second])
+            sides = np.concatenate([sides, sides[hold]])
+            kind = np.concatenate([kind, kind[hold]])
+        for a, s in common:  # pair the new nodes across axis a
+            for iu, iv, im in images:
+                ju, jv = partner[a].get(iu), partner[a].get(iv)
+                if ju is None or jv is None or im[a] != 0.0:
+                    continue
+                lo, hi = ids.get((min(iu, iv), max(iu, iv))), ids.get((min(ju, jv), max(ju, jv)))
+                if lo is not None and hi is not None:
+                    new_pairs[a].append((lo, hi))
+                    partner[a][lo], partner[a][hi] = hi, lo
+    pairs = {}
+    for a in range(3):
+        old = np.asarray(surface.periodic_pairs.get(a, np.zeros((0, 2))), dtype=np.int64).reshape(-1, 2)
+        extra = np.asarray(new_pairs[a], dtype=np.int64).reshape(-1, 2)
+        if len(old) or len(extra) or a in surface.periodic_pairs:
+            pairs[a] = np.concatenate([old, extra])
+    out = SurfaceMesh(np.asarray(pts), tris, sides, kind, np.asarray(inc), surface.box, pairs, dict(surface.metadata))
+    return out, added

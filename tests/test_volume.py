@@ -1,0 +1,307 @@
+"""Volume step: conforming Delaunay that keeps every surface triangle, labels, relaxation, slivers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import Delaunay
+
+from jaxmesh._errors import MeshingError
+from jaxmesh._mesh import Mesh, make_periodic_pairs
+from jaxmesh._quality import cell_quality, dihedral_angles, signed_volumes
+from jaxmesh._surface_mesh import BOX_FACE, INTERFACE, OUTSIDE, SurfaceMesh
+from jaxmesh._validate import validate
+from jaxmesh._volume import VolumeConfig, conforming_delaunay, interior_nodes, label_cells, tetrahedralize
+from jaxmesh._volume_recover import (
+    levelset_projector,
+    missing_triangles,
+    point_triangle_distance,
+    split_edges,
+    triangle_keys,
+)
+
+
+# ----------------------------------------------------------------------------- test surfaces
+def _jitter(key: np.ndarray, amp: float) -> np.ndarray:
+    """Deterministic pseudo-random numbers in [-amp, amp] from integer keys (same key, same value)."""
+    x = np.sin(key.astype(float) * 12.9898 + 78.233) * 43758.5453
+    return amp * (2 * (x - np.floor(x)) - 1)
+
+
+def box_surface(n: int = 8, box=(1.0, 1.0, 1.0), amp: float = 0.2):
+    """Periodic triangulation of the 6 box faces: a grid of n steps per axis, nodes jittered along
+    the face (equally on opposite faces), each min face the 2D Delaunay of its nodes and each max
+    face its translate. Returns (points, triangles (outward), periodic pairs)."""
+    box = np.asarray(box, float)
+    idx = np.stack(np.meshgrid(*[np.arange(n + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    on = (idx == 0) | (idx == n)
+    idx = idx[on.any(axis=1)]
+    on = (idx == 0) | (idx == n)
+    step = box / n
+    pts = idx * step
+    wrapped = idx % n  # the same for every periodic copy
+    for a in range(3):  # jitter the free coordinates, keyed by the wrapped indices and the free axes
+        free = ~on[:, a]
+        key = ((wrapped[:, 0] * 131 + wrapped[:, 1]) * 131 + wrapped[:, 2]) * 7 + a
+        key = key + 1000003 * on.sum(axis=1)
+        pts[free, a] += _jitter(key[free], amp * step[a])
+    tris = []
+    for a in range(3):
+        t_ax = [b for b in range(3) if b != a]
+        lo = np.flatnonzero(idx[:, a] == 0)
+        hi = np.flatnonzero(idx[:, a] == n)
+        tr = np.asarray(Delaunay(pts[lo][:, t_ax]).simplices)
+        # outward on x_a = 0 is -e_a: orient each triangle
+        for face, sgn in ((lo, -1.0), (None, 1.0)):
+            if face is None:  # the translate of each min-face node
+                kmap = {tuple(idx[i]): i for i in hi}
+                face = np.array([kmap[tuple(idx[i] + n * np.eye(3, dtype=int)[a])] for i in lo])
+            t = face[tr]
+            p = pts[t]
+            nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])[:, a]
+            flip = nrm * sgn < 0
+            t[flip] = t[flip][:, [0, 2, 1]]
+            tris.append(t)
+    tris = np.concatenate(tris)
+    # a face node is on several planes: the Delaunay of each face must use the same edge nodes
+    return pts, tris
+
+
+def icosphere(center, radius: float, level: int):
+    """Subdivided icosahedron projected onto the sphere; triangles oriented outward."""
+    t = (1 + 5**0.5) / 2
+    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t],
+                  [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float)
+    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2],
+                  [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5],
+                  [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]])
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    for _ in range(level):
+        cache, verts, faces = {}, list(v), []
+
+        def mid(i, j):
+            k = (min(i, j), max(i, j))
+            if k not in cache:
+                m = verts[i] + verts[j]
+                verts.append(m / np.linalg.norm(m))
+                cache[k] = len(verts) - 1
+            return cache[k]
+
+        for a, b, c in f:
+            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+            faces += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
+        v, f = np.array(verts), np.array(faces)
+    p = np.asarray(center, float) + radius * v
+    nrm = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])
+    out = np.einsum("ij,ij->i", nrm, p[f].mean(axis=1) - center) > 0
+    f[~out] = f[~out][:, [0, 2, 1]]
+    return p, f
+
+
+def rve_surface(spheres=(((0.5, 0.5, 0.5), 0.3, 2),), n: int = 8, box=(1.0, 1.0, 1.0)) -> SurfaceMesh:
+    """SurfaceMesh of a periodic box holding spheres fully inside (centre, radius, icosphere level)."""
+    pts, tris = box_surface(n, box)
+    sides = [np.tile([0, OUTSIDE], (len(tris), 1))]
+    kinds = [np.full(len(tris), BOX_FACE)]
+    inc = [np.zeros(len(pts), np.int64)]
+    all_pts, all_tris = [pts], [tris]
+    off = len(pts)
+    for k, (c, r, level) in enumerate(spheres, start=1):
+        p, f = icosphere(np.asarray(c, float), r, level)
+        all_pts.append(p)
+        all_tris.append(f + off)
+        sides.append(np.tile([k, 0], (len(f), 1)))
+        kinds.append(np.full(len(f), INTERFACE))
+        inc.append(np.full(len(p), k))
+        off += len(p)
+    points = np.concatenate(all_pts)
+    pairs = make_periodic_pairs(points, box)
+    return SurfaceMesh(points, np.concatenate(all_tris), np.concatenate(sides), np.concatenate(kinds),
+                       np.concatenate(inc), box, pairs)
+
+
+def sphere_microstructure(spheres, box=(1.0, 1.0, 1.0), grid: int = 24):
+    from jaxmesh.geometry._microstructure import Microstructure
+    from jaxmesh.geometry._shapes import sphere_sdf
+
+    fns = [sphere_sdf(np.asarray(c, float), float(r)) for c, r, _ in spheres]
+    return Microstructure.from_functions(fns, box, (grid,) * 3)
+
+
+def _present(surface: SurfaceMesh, mesh: Mesh) -> bool:
+    return not missing_triangles(surface.triangles, mesh.cells, mesh.n_points).any()
+
+
+H = 0.11
+NOREL = VolumeConfig(relax=False)
+
+
+def _h(p):
+    return np.full(len(p), H)
+
+
+# ----------------------------------------------------------------------------- unit pieces
+def test_point_triangle_distance_regions():
+    a, b, c = np.array([0.0, 0, 0]), np.array([1.0, 0, 0]), np.array([0.0, 1, 0])
+    p = np.array([[0.2, 0.2, 0.5], [-1, -1, 0], [2, 0, 0], [0.5, -1, 0], [1, 1, 0], [0, 3, 1], [-1, 0.5, 0]])
+    want = [0.5, 2**0.5, 1.0, 1.0, 0.5**0.5, (4 + 1) ** 0.5, 1.0]
+    rep = lambda x: np.repeat(x[None], len(p), 0)  # noqa: E731
+    np.testing.assert_allclose(point_triangle_distance(p, rep(a), rep(b), rep(c)), want, rtol=1e-12)
+
+
+def test_box_surface_is_closed_and_periodic():
+    s = rve_surface(spheres=())
+    keys = triangle_keys(np.sort(np.concatenate([s.triangles[:, [0, 1]], s.triangles[:, [1, 2]],
+                                                 s.triangles[:, [2, 0]]]), 1)[:, [0, 0, 1]], s.n_points)
+    _, cnt = np.unique(keys, return_counts=True)
+    assert np.all(cnt == 2)  # every edge in two triangles: closed surface
+    for a in range(3):
+        assert len(s.periodic_pairs[a]) == np.sum(np.abs(s.points[:, a]) < 1e-12)
+
+
+def test_interior_nodes_clearance_and_box():
+    s = rve_surface()
+    pts = interior_nodes(s, _h)
+    assert len(pts) > 100
+    assert np.all((pts > 0) & (pts < 1))
+    from jaxmesh._volume_recover import distance_to_surface
+
+    d = distance_to_surface(pts, s, np.full(len(pts), 2.0))
+    assert d.min() >= 0.6 * H * (1 - 1e-12)
+
+
+# ----------------------------------------------------------------------------- conforming Delaunay
+@pytest.fixture(scope="module")
+def sphere_case():
+    spheres = (((0.5, 0.5, 0.5), 0.3, 2),)
+    s = rve_surface(spheres)
+    mesh, s2 = tetrahedralize(s, h_fn=_h, config=NOREL, return_surface=True)
+    return s, s2, mesh, spheres
+
+
+def test_every_surface_triangle_present(sphere_case):
+    s, s2, mesh, _ = sphere_case
+    assert _present(s2, mesh)
+    if s2.n_triangles == s.n_triangles:  # no recovery split: the input triangles themselves
+        np.testing.assert_array_equal(s2.triangles, s.triangles)
+    assert _present(s, mesh) or mesh.metadata["volume"]["surface_splits"] > 0
+
+
+def test_volume_and_orientation(sphere_case):
+    _, _, mesh, _ = sphere_case
+    vol = signed_volumes(mesh.points, mesh.cells)
+    assert vol.min() > 0
+    assert abs(vol.sum() - 1.0) < 1e-9
+
+
+def test_labels_sphere_volume(sphere_case):
+    _, s2, mesh, _ = sphere_case
+    vol = signed_volumes(mesh.points, mesh.cells)
+    inside = vol[mesh.inclusion_id == 1].sum()
+    # the polyhedron volume: sum over surface triangles of the signed cone volume from the centre
+    tri = s2.triangles[s2.kind == INTERFACE]
+    p = s2.points[tri] - 0.5
+    poly = np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6
+    assert abs(inside - poly) < 1e-12
+    assert set(np.unique(mesh.inclusion_id)) == {0, 1}
+
+
+def test_validate_centred_sphere(sphere_case):
+    _, _, mesh, spheres = sphere_case
+    ms = sphere_microstructure(spheres)
+    rep = validate(mesh, ms)
+    assert rep.ok, rep.summary()
+
+
+def test_periodic_boundary_faces_translate(sphere_case):
+    _, _, mesh, _ = sphere_case
+    faces = mesh.boundary_facets()
+    for a, ax in enumerate("xyz"):
+        lo, hi = faces[f"{ax}min"], faces[f"{ax}max"]
+        assert len(lo) == len(hi) > 0
+        shift = np.eye(3)[a]
+        key = lambda f, s: np.sort(np.round(mesh.points[f].mean(1) + s, 12).view("f8,f8,f8").ravel())  # noqa: E731
+        np.testing.assert_array_equal(key(lo, shift), key(hi, 0 * shift))
+
+
+def test_two_spheres_labels_and_validate():
+    spheres = (((0.3, 0.3, 0.3), 0.17, 2), ((0.7, 0.65, 0.68), 0.2, 2))
+    s = rve_surface(spheres)
+    mesh = tetrahedralize(s, h_fn=_h, config=NOREL)
+    ms = sphere_microstructure(spheres)
+    rep = validate(mesh, ms)
+    assert rep.ok, rep.summary()
+    assert set(np.unique(mesh.inclusion_id)) == {0, 1, 2}
+
+
+def test_label_fn_check_catches_swapped_labels(sphere_case):
+    from jaxmesh._volume import check_labels
+
+    s, s2, mesh, spheres = sphere_case
+    ms = sphere_microstructure(spheres)
+    assert check_labels(mesh, s2, ms.label) > 0
+    with pytest.raises(MeshingError, match="labels"):
+        check_labels(mesh, s2, lambda p: 1 - ms.label(p))
+
+
+def test_recovery_removes_encroaching_interior_nodes():
+    s = rve_surface()
+    # interior nodes planted right next to the sphere: a plain Delaunay loses triangles
+    tri = s.triangles[s.kind == INTERFACE][:40]
+    c = s.points[tri].mean(1)
+    bad = 0.5 + (c - 0.5) * 1.004
+    interior = np.concatenate([interior_nodes(s, _h), bad])
+    points, cells, s2, info = conforming_delaunay(s, interior, NOREL)
+    assert not missing_triangles(s2.triangles, cells, len(points)).any()
+    assert info["missing_first"] > 0 and info["interior_removed"] > 0
+
+
+def test_split_edges_mirrors_box_edges_and_projects():
+    spheres = (((0.5, 0.5, 0.5), 0.3, 1),)
+    s = rve_surface(spheres, n=4)
+    ms = sphere_microstructure(spheres)
+    proj = levelset_projector(ms.inclusion_phi)
+    # a face edge on x = 0 and an interface edge
+    lo = np.flatnonzero(np.abs(s.points[:, 0]) < 1e-12)
+    t = s.triangles[(np.isin(s.triangles, lo).all(1))][0]
+    it = s.triangles[s.kind == INTERFACE][0]
+    s2, added = split_edges(s, np.array([[t[0], t[1]], [it[0], it[1]]]), proj)
+    assert added >= 3  # the face edge, its x = L translate (more on a box edge), the interface edge
+    assert s2.n_triangles == s.n_triangles + 2 * added  # every split edge is in two triangles
+    new = np.arange(s.n_points, s2.n_points)
+    assert np.abs(ms.inclusion_phi(1, s2.points[new[s2.node_inclusion[new] == 1]])).max() < 1e-10
+    np.testing.assert_array_equal(np.sort(np.concatenate([make_periodic_pairs(s2.points, s2.box)[a] for a in
+                                                          range(3)]), 0),
+                                  np.sort(np.concatenate([s2.periodic_pairs[a] for a in range(3)]), 0))
+    # the refined surface still meshes conformingly and validates
+    mesh = tetrahedralize(s2, h_fn=lambda p: np.full(len(p), 0.2), config=NOREL)
+    assert validate(mesh, ms).ok
+
+
+def test_bad_inputs():
+    s = rve_surface(spheres=())
+    with pytest.raises(ValueError, match="SurfaceMesh"):
+        tetrahedralize(np.zeros((3, 3)), h_fn=_h)
+    with pytest.raises(ValueError, match="h_fn"):
+        tetrahedralize(s, h_fn=lambda p: -np.ones(len(p)), config=NOREL)
+    with pytest.raises(ValueError, match="clearance"):
+        VolumeConfig(clearance=-1.0)
+    with pytest.raises(ValueError, match="interior_points"):
+        tetrahedralize(s, np.zeros((4, 2)), h_fn=_h, config=NOREL)
+
+
+def test_unrelaxed_mesh_has_no_flat_cells(sphere_case):
+    """The Delaunay mesh before relaxation: no flat cell, finite dihedral angles."""
+    _, _, mesh, _ = sphere_case
+    q = cell_quality(mesh.points, mesh.cells)
+    assert q.min() > 0 and np.isfinite(dihedral_angles(mesh.points, mesh.cells)).all()
+
+
+def test_label_cells_rejects_inward_box_faces():
+    s = rve_surface(spheres=())
+    interior = interior_nodes(s, _h)
+    points, cells, s2, _ = conforming_delaunay(s, interior, NOREL)
+    flipped = SurfaceMesh(s2.points, s2.triangles[:, [0, 2, 1]], s2.sides, s2.kind, s2.node_inclusion, s2.box,
+                          s2.periodic_pairs)
+    with pytest.raises(MeshingError, match="labels"):
+        label_cells(points, cells, flipped)
