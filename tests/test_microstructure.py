@@ -148,7 +148,8 @@ def test_phi_label_global_fn_and_gradients(two_spheres):
     for f in (ms.inclusions[0].phi_fn, fn):
         g = np.asarray(jax.vmap(jax.grad(lambda p: f(p[None])[0]))(jnp.asarray(x)))
         eps = 1e-6
-        fd = np.stack([(np.asarray(f(x + eps * e)) - np.asarray(f(x - eps * e))) / (2 * eps) for e in np.eye(3)], -1)
+        fd = np.stack([(np.asarray(f(x + eps * e)) - np.asarray(f(x - eps * e))) / (2 * eps)
+                       for e in np.eye(3)], -1)
         np.testing.assert_allclose(g, fd, atol=1e-6)
         np.testing.assert_allclose(np.linalg.norm(g, axis=1), 1.0, atol=0.05)
 
@@ -290,8 +291,10 @@ def test_bad_functions():
     h = 1 / 32
     _raises("touch", Microstructure.from_functions,
             [jball((0.3, 0.5), 0.15), jball((0.6 + 0.4 * h, 0.5), 0.15)], box, shape)
-    _raises("overlap", Microstructure.from_functions, [jball((0.3, 0.5), 0.15), jball((0.5, 0.5), 0.15)], box, shape)
-    ok = Microstructure.from_functions([jball((0.3, 0.5), 0.15), jball((0.6 + 1.5 * h, 0.5), 0.15)], box, shape)
+    _raises("overlap", Microstructure.from_functions,
+            [jball((0.3, 0.5), 0.15), jball((0.5, 0.5), 0.15)], box, shape)
+    ok = Microstructure.from_functions(
+        [jball((0.3, 0.5), 0.15), jball((0.6 + 1.5 * h, 0.5), 0.15)], box, shape)
     assert len(ok.inclusions) == 2
     _raises("negative somewhere", Microstructure.from_functions, [lambda p: jnp.ones(p.shape[0])], box, shape)
     _raises("negative", Microstructure.from_functions, [jball((0.51, 0.5), 0.2 * h)], box, shape)

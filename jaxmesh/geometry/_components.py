@@ -10,6 +10,7 @@ the inclusion.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -338,11 +339,14 @@ def frame_values(W: np.ndarray, win: Window, own: np.ndarray, frame_origin, spac
             inside = (u >= win.core_lo[k]) & (u <= win.core_hi[k])
             dst.append(np.flatnonzero(inside))
             src.append(u[inside])
-    d_nodes = edt(own, spacing)
-    coords = np.stack(np.meshgrid(*local, indexing="ij"), axis=-1)
     vals = np.empty(own.shape)
-    vals[...] = outside_distance(tree, coords.reshape(-1, W.ndim), d_nodes.ravel(), spacing).reshape(own.shape)
+    core = np.zeros(own.shape, bool)
+    core[np.ix_(*dst)] = True
     vals[np.ix_(*dst)] = W[np.ix_(*src)]
+    rest = np.nonzero(~core)
+    if rest[0].size:
+        coords = np.stack([loc[i] for loc, i in zip(local, rest)], axis=-1)
+        vals[rest] = outside_distance(tree, coords, edt(own, spacing)[rest], spacing)
     return vals
 
 
@@ -427,7 +431,7 @@ def check_field(values, where: str, labels: bool = False) -> np.ndarray:
     if labels:
         if a.dtype.kind not in "biu":
             raise ValueError(f"{where} expected an integer or bool label image, got dtype {a.dtype}. "
-                             "Hint: cast with labels.astype(int), or use from_levelset for a level-set field.")
+                             "Hint: cast with labels.astype(int), or use from_levelset for a level set.")
     elif a.dtype.kind not in "iuf" or a.dtype == bool:
         raise ValueError(f"{where} expected real level-set values, got dtype {a.dtype}. "
                          "Hint: use from_labels for integer / bool label images.")
@@ -468,7 +472,8 @@ def check_box(box, shape, where: str, allow_none: bool = True) -> tuple[float, .
 
 def check_order(order) -> None:
     if order not in ("linear", "cubic"):
-        raise ValueError(f"expected order 'cubic' or 'linear', got {order!r}. Hint: 'cubic' is C2 (curvatures).")
+        raise ValueError(f"expected order 'cubic' or 'linear', got {order!r}. "
+                         "Hint: 'cubic' is C2 (curvatures), 'linear' matches marching cubes.")
 
 
 def check_points(points, d: int, where: str) -> np.ndarray:
@@ -510,3 +515,33 @@ def size_errors(stats, descriptions) -> str:
             f"{_MIN_THICKNESS} grid steps thick), got {len(bad)} smaller: " + "; ".join(bad[:10])
             + ". Hint: sample the field on a finer grid, or remove the specks "
             "(e.g. skimage.morphology.remove_small_objects).")
+
+
+def check_function_args(phi_fns, box, grid_shape, volumes, descriptions):
+    """Validated (phi_fns list, box, grid_shape, volumes, descriptions) of from_functions."""
+    if callable(phi_fns) or not isinstance(phi_fns, Sequence) or len(phi_fns) == 0:
+        raise ValueError("from_functions expected a non-empty sequence of callables, got "
+                         f"{type(phi_fns).__name__}. "
+                         "Hint: pass [sphere_sdf(c, r) for ...], one callable per inclusion.")
+    bad = [i for i, f in enumerate(phi_fns) if not callable(f)]
+    if bad:
+        raise ValueError(f"from_functions expected callables, got non-callable entries at {bad}.")
+    try:
+        shape = tuple(int(n) for n in grid_shape)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"from_functions expected grid_shape as d integers, got {grid_shape!r}.") from err
+    if len(shape) not in (2, 3) or min(shape) < 4 or any(n != m for n, m in zip(shape, grid_shape)):
+        raise ValueError(f"from_functions expected grid_shape of 2 or 3 integers >= 4, got {grid_shape!r}. "
+                         "Hint: e.g. grid_shape=(64, 64, 64).")
+    box = check_box(box, shape, "from_functions", allow_none=False)
+    n = len(phi_fns)
+    volumes = [None] * n if volumes is None else list(volumes)
+    descriptions = [{"kind": "function"} for _ in range(n)] if descriptions is None else list(descriptions)
+    if len(volumes) != n or len(descriptions) != n:
+        raise ValueError(f"from_functions expected {n} volumes and descriptions (one per phi_fn), got "
+                         f"{len(volumes)} and {len(descriptions)}.")
+    for i, vol in enumerate(volumes):
+        if vol is not None and not (np.isfinite(float(vol)) and float(vol) > 0):
+            raise ValueError(f"from_functions expected positive volumes, got volumes[{i}] = {vol!r}.")
+    volumes = [None if vol is None else float(vol) for vol in volumes]
+    return list(phi_fns), box, shape, volumes, [dict(dsc) for dsc in descriptions]

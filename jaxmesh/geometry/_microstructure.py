@@ -9,7 +9,7 @@ from_labels; see _components.py), so that two inclusions one grid step apart sta
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import jax
@@ -64,6 +64,12 @@ _KERNELS = {
 _KERNEL_SET = frozenset(_KERNELS.values())
 
 
+@functools.partial(jax.jit, static_argnums=0)
+def _map_kernel(func, params, box, window_box, batch):
+    """Inclusion k of a stack at its own points batch[k] (K, B, d) -> (K, B), one at a time."""
+    return jax.lax.map(lambda a: func(*a[0], box, window_box, a[1]), (params, batch))
+
+
 class _Periodized:
     """phi(x) = min over the 3^d image shifts of f(wrap(x) + shift): a periodic level set from an
     SDF defined on R^d (wrap first, so points far outside the box are handled too)."""
@@ -103,8 +109,9 @@ def evaluate(phi_fn: Callable, points: np.ndarray, name: str | None = None, chun
                              "phi_fn maps points (m, d) to values (m,), e.g. jaxmesh sphere_sdf.") from err
         if name is not None and (v.shape != (size,) or not np.isfinite(v).all()):
             raise ValueError(f"from_functions expected {name} to return {size} finite values for points "
-                             f"({size}, d), got shape {v.shape} with {int(np.size(v) - np.isfinite(v).sum())} "
-                             "NaN/inf. Hint: return one finite signed distance per point.")
+                             f"({size}, d), got shape {v.shape} with {np.size(v) - np.isfinite(v).sum()} "
+                             "NaN/inf. "
+                             "Hint: return one finite signed distance per point.")
         out[start : start + k] = v[:k]
     return out
 
@@ -128,8 +135,9 @@ def function_bounds(f: Callable, i: int, shape, spacing):
     cand = vals < (0.0 if (s == 1).all() else float(np.linalg.norm(s * spacing)))
     if not cand.any():
         raise ValueError(
-            f"from_functions expected phi_fns[{i}] to be negative somewhere on the grid, got min {vals.min():.4g} "
-            f"on nodes of [-L, 2L)^d. Hint: negative inside; an inclusion must span grid nodes (refine grid_shape)."
+            f"from_functions expected phi_fns[{i}] to be negative somewhere on the grid, got min "
+            f"{vals.min():.4g} on the nodes of [-L, 2L)^d. Hint: negative inside; an inclusion must span "
+            "grid nodes (refine grid_shape)."
         )
     fine = []
     for k in range(len(n)):
@@ -139,7 +147,7 @@ def function_bounds(f: Callable, i: int, shape, spacing):
     own = vals < 0
     if not own.any():
         raise ValueError(f"from_functions expected phi_fns[{i}] to be negative on some grid node, got none "
-                         f"(min {vals.min():.4g}). Hint: the inclusion is smaller than a grid step: refine grid_shape.")
+                         f"(min {vals.min():.4g}). Hint: it is smaller than a grid step: refine grid_shape.")
     lo, hi = comp.crossing_bounds(vals, own, [False] * len(n))
     origin = np.array([a[0] for a in fine])
     return (origin + lo) * spacing, (origin + hi) * spacing, int(own.sum()), comp.chord_thickness(vals, own)
@@ -174,8 +182,9 @@ class Microstructure:
             raise ValueError("Microstructure expected inclusion ids 1..N in order.")
         for name, a in (("dn1", dn1), ("dn2", dn2), ("nearest_id", nearest_id)):
             if np.shape(a) != self.grid_shape:
-                raise ValueError(f"Microstructure expected {name} of shape {self.grid_shape}, got {np.shape(a)}.")
-        self._global = None
+                raise ValueError(f"Microstructure expected {name} of shape {self.grid_shape}, "
+                                 f"got {np.shape(a)}.")
+        self._stacked = None
 
     def __repr__(self):
         return (f"Microstructure(dim={self.dim}, box={self.box}, periodic={self.periodic}, "
@@ -220,11 +229,10 @@ class Microstructure:
         pts = check_points(points, self.dim, "Microstructure.phi")
         h = max(self.spacing)
         out = np.full(len(pts), np.inf)
-        for inc in self.inclusions:
-            near = self._bbox_distance(inc, pts) <= _PHI_MARGIN * h
-            if near.any():
-                out[near] = np.minimum(out[near], evaluate(inc.phi_fn, pts[near]))
-        far = out > _CORE_PAD * h
+        for _, sel, vals in self._evaluate_near(pts, _PHI_MARGIN * h):
+            out[sel] = np.minimum(out[sel], vals)
+        # window-based phi_fn only continue distance-like beyond their core: take the grid if smaller
+        far = out > _CORE_PAD * h if self._groups()[0] else ~np.isfinite(out)
         if far.any():
             coords = (pts[far] / np.asarray(self.spacing)).T
             mode = "grid-wrap" if self.periodic else "nearest"
@@ -240,14 +248,49 @@ class Microstructure:
         """Inclusion id containing each point (m, d) -> (m,) int64; 0 = matrix."""
         pts = check_points(points, self.dim, "Microstructure.label")
         ids, best = np.zeros(len(pts), np.int64), np.zeros(len(pts))
-        for inc in self.inclusions:
-            near = self._bbox_distance(inc, pts) <= max(self.spacing)
-            if near.any():
-                v = evaluate(inc.phi_fn, pts[near])
-                win = v < best[near]
-                sel = np.flatnonzero(near)[win]
-                ids[sel], best[sel] = inc.id, v[win]
+        for i, sel, vals in self._evaluate_near(pts, max(self.spacing)):
+            win = vals < best[sel]
+            ids[sel[win]], best[sel[win]] = i + 1, vals[win]
         return ids
+
+    def _groups(self):
+        """Window-based inclusions stacked by (kernel, window shape): [(kernel, params, box, window_box,
+        member indices)], and the other inclusions' indices (cached)."""
+        if self._stacked is None:
+            groups, others = {}, []
+            for i, inc in enumerate(self.inclusions):
+                f = inc.phi_fn
+                if isinstance(f, jax.tree_util.Partial) and f.func in _KERNEL_SET:
+                    groups.setdefault((f.func, f.args[0].shape), []).append(i)
+                else:
+                    others.append(i)
+            stacks = []
+            for (func, _), members in groups.items():
+                fs = [self.inclusions[i].phi_fn for i in members]
+                params = tuple(jnp.stack([f.args[k] for f in fs]) for k in range(4))
+                stacks.append((func, params, fs[0].args[4], fs[0].args[5], np.array(members)))
+            self._stacked = (stacks, others)
+        return self._stacked
+
+    def _evaluate_near(self, pts: np.ndarray, margin: float):
+        """Yield (inclusion index, selected point indices, phi values) for every inclusion at the
+        points within margin of its bounds; equal windows are evaluated in one compiled call."""
+        near = [np.flatnonzero(self._bbox_distance(inc, pts) <= margin) for inc in self.inclusions]
+        stacks, others = self._groups()
+        for func, params, box, wbox, members in stacks:
+            counts = [len(near[i]) for i in members]
+            if max(counts) == 0:
+                continue
+            size = max(64, 1 << (max(counts) - 1).bit_length())
+            batch = np.zeros((len(members), size, self.dim))
+            for j, i in enumerate(members):
+                batch[j, : counts[j]] = pts[near[i]]
+            vals = np.asarray(_map_kernel(func, params, box, wbox, batch))
+            for j, i in enumerate(members):
+                yield i, near[i], vals[j, : counts[j]]
+        for i in others:
+            if len(near[i]):
+                yield i, near[i], evaluate(self.inclusions[i].phi_fn, pts[near[i]])
 
     def global_phi_fn(self) -> Callable:
         """JAX DN1 callable points (m, d) -> (m,): the min over every inclusion's phi_fn.
@@ -255,33 +298,22 @@ class Microstructure:
         Window-based inclusions of equal window shape are stacked and folded with lax.scan, so the
         cost is N interpolations per point at the memory of one. Jit-able, differentiable.
         """
-        if self._global is None:
-            groups, others = {}, []
-            for inc in self.inclusions:
-                f = inc.phi_fn
-                if isinstance(f, jax.tree_util.Partial) and f.func in _KERNEL_SET:
-                    groups.setdefault((f.func, f.args[0].shape), []).append(f)
-                else:
-                    others.append(f)
-            stacks = [
-                (key[0], tuple(jnp.stack([f.args[i] for f in fs]) for i in range(4)), fs[0].args[4], fs[0].args[5])
-                for key, fs in groups.items()
-            ]
+        stacks, others = self._groups()
+        other_fns = [self.inclusions[i].phi_fn for i in others]
 
-            def dn1_fn(points):
-                points = jnp.asarray(points)
-                out = jnp.full(points.shape[:-1], jnp.inf, dtype=jnp.result_type(points.dtype, float))
-                for func, params, box, wbox in stacks:
-                    def body(carry, p, func=func, box=box, wbox=wbox):
-                        return jnp.minimum(carry, func(*p, box, wbox, points)), None
+        def dn1_fn(points):
+            points = jnp.asarray(points)
+            out = jnp.full(points.shape[:-1], jnp.inf, dtype=jnp.result_type(points.dtype, float))
+            for func, params, box, wbox, _ in stacks:
+                def body(carry, p, func=func, box=box, wbox=wbox):
+                    return jnp.minimum(carry, func(*p, box, wbox, points)), None
 
-                    out, _ = jax.lax.scan(body, out, params)
-                for f in others:
-                    out = jnp.minimum(out, f(points))
-                return out
+                out, _ = jax.lax.scan(body, out, params)
+            for f in other_fns:
+                out = jnp.minimum(out, f(points))
+            return out
 
-            self._global = dn1_fn
-        return self._global
+        return dn1_fn
 
     def volume_fraction(self) -> float:
         """Inclusion volume fraction: analytic when every inclusion's volume is known, else from the
@@ -308,7 +340,7 @@ class Microstructure:
             The Microstructure; each inclusion's description holds n_samples and thickness (steps).
         """
         v = check_field(values, "from_levelset")
-        shape, d = v.shape, v.ndim
+        shape = v.shape
         box = check_box(box, shape, "from_levelset")
         check_order(order)
         spacing = tuple(L / n for L, n in zip(box, shape))
@@ -316,20 +348,21 @@ class Microstructure:
         if not mask.any():
             raise ValueError(
                 f"from_levelset expected an inclusion (phi < 0 somewhere), got no negative values "
-                f"(min {v.min():.4g}). Hint: the convention is negative inside; pass -phi if yours is reversed."
+                f"(min {v.min():.4g}). Hint: the convention is negative inside; pass -phi if reversed."
             )
         if periodic:
             for k, (jump, typical) in enumerate(comp.periodicity_ratios(v)):
                 if jump > 3.0 * typical + 1e-12 * (np.abs(v).max() + 1):
                     raise ValueError(
                         f"from_levelset expected a periodic field (periodic=True), but along axis {k} the "
-                        f"wrap-around jump |phi[0] - phi[n-1]| averages {jump:.4g}, {jump / max(typical, 1e-300):.1f}"
-                        f" times the largest jump between neighbouring slices ({typical:.4g}). Hint: pass "
-                        "periodic=False, or sample a periodic field at x = i * L / n, i < n (no repeated last node)."
+                        f"wrap-around jump |phi[0] - phi[n-1]| averages {jump:.4g}, "
+                        f"{jump / max(typical, 1e-300):.1f} times the largest jump between neighbouring "
+                        f"slices ({typical:.4g}). Hint: pass periodic=False, or sample a periodic field at "
+                        "x = i * L / n, i < n (no repeated last node)."
                     )
         scale = gradient_scale(v, mask, spacing)
-        if abs(scale - 1.0) > 0.25:
-            v = v / scale
+        scale = scale if abs(scale - 1.0) > 0.25 else 1.0  # distance-like fields are kept as they are
+        v = v / scale
         labels, n = comp.label_components(mask, periodic)
         starts, lengths = comp.component_arcs(labels, n, periodic)
         pad = _CORE_PAD + _SPLINE_PAD[order]
@@ -337,13 +370,16 @@ class Microstructure:
         _, near = comp.nearest_component(labels, spacing, periodic, pad=int(min(max(shape), 2 * pad + 8)))
         windows, fields = [], []
         for c in range(1, n + 1):
-            win = comp.make_window(starts[c - 1], lengths[c - 1], shape, periodic, _CORE_PAD, _SPLINE_PAD[order])
+            win = comp.make_window(starts[c - 1], lengths[c - 1], shape, periodic, _CORE_PAD,
+                                   _SPLINE_PAD[order])
             idx = comp.frame_indices(win.origin, win.shape, shape, periodic)
             own = comp.take(labels, idx) == c
-            fields.append(comp.levelset_window_field(comp.take(v, idx), own, comp.take(near, idx), c, spacing, win.full))
+            near_w = comp.take(near, idx)
+            fields.append(comp.levelset_window_field(comp.take(v, idx), own, near_w, c, spacing, win.full))
             windows.append(win)
         descriptions = [{"kind": "levelset", "scale": float(scale)} for _ in range(n)]
-        return cls._from_windows(box, periodic, order, labels, starts, lengths, windows, fields, r, descriptions)
+        return cls._from_windows(box, periodic, order, labels, (starts, lengths), windows, fields, r,
+                                 descriptions)
 
     @classmethod
     def from_labels(cls, labels, box=None, periodic=True, *, reach=None) -> Microstructure:
@@ -373,7 +409,8 @@ class Microstructure:
                 listed = ", ".join(f"{a}-{b}" for a, b in pairs[:8])
                 raise ValueError(
                     f"from_labels expected separated inclusions, got {len(pairs)} pairs of different labels "
-                    f"sharing a grid face ({listed}). Hint: leave at least one matrix (0) voxel between inclusions."
+                    f"sharing a grid face ({listed}). Hint: leave at least one matrix (0) voxel between "
+                    "inclusions."
                 )
             first = np.zeros(n + 1, dtype=lab.dtype)
             first[comps.ravel()] = lab.ravel()
@@ -393,20 +430,24 @@ class Microstructure:
         r = _reach_steps(reach, lengths, shape, spacing, _CORE_PAD + _SPLINE_PAD["cubic"])
         windows, fields = [], []
         for c in range(1, n + 1):
-            win = comp.make_window(starts[c - 1], lengths[c - 1], shape, periodic, _CORE_PAD, _SPLINE_PAD["cubic"])
+            win = comp.make_window(starts[c - 1], lengths[c - 1], shape, periodic, _CORE_PAD,
+                                   _SPLINE_PAD["cubic"])
             own = comp.take(comps, comp.frame_indices(win.origin, win.shape, shape, periodic)) == c
             fields.append(comp.labels_window_field(own, spacing, win.full))
             windows.append(win)
         descriptions = [{"kind": "labels", "label": int(val)} for val in values]
-        return cls._from_windows(box, periodic, "cubic", comps, starts, lengths, windows, fields, r, descriptions)
+        return cls._from_windows(box, periodic, "cubic", comps, (starts, lengths), windows, fields, r,
+                                 descriptions)
 
     @classmethod
-    def _from_windows(cls, box, periodic, order, labels, starts, lengths, windows, fields, r, descriptions):
-        shape = labels.shape
+    def _from_windows(cls, box, periodic, order, labels, arcs, windows, fields, r, descriptions):
+        """Shared tail of from_levelset / from_labels: size checks, dn1/dn2, bounds, JAX phi_fns.
+        labels: (grid) component ids; arcs: (starts, lengths) (N, d); fields: window level sets."""
+        shape, (starts, lengths) = labels.shape, arcs
         spacing = np.array([L / n for L, n in zip(box, shape)])
         owns = [f < 0 for f in fields]
-        errors = size_errors(
-            [(int(o.sum()), comp.chord_thickness(f, o)) for f, o in zip(fields, owns)], descriptions)
+        stats = [(int(o.sum()), comp.chord_thickness(f, o)) for f, o in zip(fields, owns)]
+        errors = size_errors(stats, descriptions)
         if errors:
             raise ValueError(errors)
         dn1, dn2, nearest = _new_dn(shape)
@@ -419,7 +460,7 @@ class Microstructure:
             comp.accumulate(dn1, dn2, nearest, c, idx, vals)
         reach = _finish_dn(dn1, dn2, nearest, labels, spacing, box, periodic, r)
         inclusions = []
-        for c, (win, W, own, desc) in enumerate(zip(windows, fields, owns, descriptions), start=1):
+        for c, (win, W, own, desc, stat) in enumerate(zip(windows, fields, owns, descriptions, stats), 1):
             lo, hi = comp.crossing_bounds(W, own, win.full)
             lower, upper = (win.origin + lo) * spacing, (win.origin + hi) * spacing
             centre, half = zip(*(comp.core_geometry(win, k, spacing, W.shape) for k in range(len(shape))))
@@ -427,7 +468,7 @@ class Microstructure:
             args = [jnp.asarray(a, dtype=data.dtype) for a in
                     (win.origin * spacing, centre, half, box, np.asarray(W.shape) * spacing)]
             phi_fn = jax.tree_util.Partial(_KERNELS[(order == "cubic", bool(periodic))], data, *args)
-            desc = dict(desc, n_samples=int(own.sum()), thickness=comp.chord_thickness(W, own))
+            desc = dict(desc, n_samples=stat[0], thickness=stat[1])
             inclusions.append(Inclusion(c, phi_fn, lower, upper, None, desc))
         return cls(box, periodic, inclusions, shape, dn1, dn2, nearest, reach)
 
@@ -450,7 +491,7 @@ class Microstructure:
             ValueError: bad arguments, an inclusion with no or too few negative grid samples, or
                 two inclusions closer than one grid step (touching / overlapping).
         """
-        fns, box, shape, volumes, descriptions = _check_function_args(phi_fns, box, grid_shape, volumes,
+        fns, box, shape, volumes, descriptions = comp.check_function_args(phi_fns, box, grid_shape, volumes,
                                                                       descriptions)
         spacing = np.array([L / n for L, n in zip(box, shape)])
         found = [function_bounds(f, i, shape, spacing) for i, f in enumerate(fns)]
@@ -480,7 +521,7 @@ class Microstructure:
             comp.accumulate(dn1, dn2, nearest, c, comp.frame_indices(fo, fs, shape, periodic), vals)
         labels = np.where(dn1 < 0, nearest, 0)
         reach_len = _finish_dn(dn1, dn2, nearest, labels, spacing, box, periodic, r)
-        _check_gaps(dn1, dn2, nearest, labels, spacing, shape)
+        _check_gaps(dn1, dn2, nearest, labels, spacing, len(fns))
         inclusions = [
             Inclusion(c, phi, lo, hi, vol, desc)
             for c, (phi, (lo, hi), vol, desc) in enumerate(zip(phis, bounds, volumes, descriptions), start=1)
@@ -513,49 +554,22 @@ def _finish_dn(dn1, dn2, nearest, labels, spacing, box, periodic, r) -> float:
     return r * h if np.isfinite(r) else np.inf
 
 
-def _check_gaps(dn1, dn2, nearest, labels, spacing, shape):
-    """Functions: every inclusion present on the grid, none closer than one grid step to another."""
+def _check_gaps(dn1, dn2, nearest, labels, spacing, n: int):
+    """Functions: every inclusion present on the grid, none closer than one grid step to another
+    (gap estimated at nodes within a step of an interface as dn1 + dn2)."""
     h = min(spacing)
-    missing = sorted(set(range(1, int(nearest.max()) + 1)) - set(np.unique(labels[labels > 0]).tolist()))
+    missing = sorted(set(range(1, n + 1)) - set(np.unique(labels[labels > 0]).tolist()))
     gap = np.where(np.abs(dn1) <= h, dn1 + dn2, np.inf)
-    worst = np.unravel_index(np.argmin(gap), shape)
+    worst = np.unravel_index(np.argmin(gap), dn1.shape)
     if gap[worst] < h * (1 - 1e-9):
         a = int(nearest[worst])
         x = tuple(round(float(i * s), 4) for i, s in zip(worst, spacing))
         what = "overlap" if gap[worst] < 0 else "touch (gap below one grid step)"
         raise ValueError(
-            f"from_functions expected inclusions separated by at least one grid step ({h:.4g}), but inclusion "
-            f"{a} and a neighbour {what}: gap ~ {gap[worst] / h:.2f} steps near x = {x}. Hint: move them apart "
-            "(e.g. random_inclusions(..., min_gap=...)) or refine grid_shape."
+            f"from_functions expected inclusions separated by at least one grid step ({h:.4g}), but "
+            f"inclusion {a} and a neighbour {what}: gap ~ {gap[worst] / h:.2f} steps near x = {x}. "
+            "Hint: move them apart (e.g. random_inclusions(..., min_gap=...)) or refine grid_shape."
         )
     if missing:
-        raise ValueError(f"from_functions: inclusions {missing} are hidden inside others (no node of their own). "
-                         "Hint: remove nested or duplicated inclusions.")
-
-
-def _check_function_args(phi_fns, box, grid_shape, volumes, descriptions):
-    if callable(phi_fns) or not isinstance(phi_fns, Sequence) or len(phi_fns) == 0:
-        raise ValueError(f"from_functions expected a non-empty sequence of callables, got {type(phi_fns).__name__}. "
-                         "Hint: pass [sphere_sdf(c, r) for ...], one callable per inclusion.")
-    bad = [i for i, f in enumerate(phi_fns) if not callable(f)]
-    if bad:
-        raise ValueError(f"from_functions expected callables, got non-callable entries at {bad}.")
-    try:
-        shape = tuple(int(n) for n in grid_shape)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"from_functions expected grid_shape as d integers, got {grid_shape!r}.") from err
-    if len(shape) not in (2, 3) or min(shape) < 4 or any(n != m for n, m in zip(shape, grid_shape)):
-        raise ValueError(f"from_functions expected grid_shape of 2 or 3 integers >= 4, got {grid_shape!r}. "
-                         "Hint: e.g. grid_shape=(64, 64, 64).")
-    box = check_box(box, shape, "from_functions", allow_none=False)
-    n = len(phi_fns)
-    volumes = [None] * n if volumes is None else list(volumes)
-    descriptions = [{"kind": "function"} for _ in range(n)] if descriptions is None else list(descriptions)
-    if len(volumes) != n or len(descriptions) != n:
-        raise ValueError(f"from_functions expected {n} volumes and descriptions (one per phi_fn), got "
-                         f"{len(volumes)} and {len(descriptions)}.")
-    for i, vol in enumerate(volumes):
-        if vol is not None and not (np.isfinite(float(vol)) and float(vol) > 0):
-            raise ValueError(f"from_functions expected positive volumes, got volumes[{i}] = {vol!r}.")
-    volumes = [None if vol is None else float(vol) for vol in volumes]
-    return list(phi_fns), box, shape, volumes, [dict(dsc) for dsc in descriptions]
+        raise ValueError(f"from_functions expected every inclusion to own grid nodes, got {missing} hidden "
+                         "inside others. Hint: remove nested or duplicated inclusions.")

@@ -119,7 +119,8 @@ def load_input(path, box=None, periodic: bool | None = None):
         >>> ms = load_input("rve.npz")
     """
     if not isinstance(path, (str, os.PathLike)):
-        raise ValueError(f"load_input expected a file path, got {type(path).__name__}. Hint: pass a str or Path.")
+        raise ValueError(f"load_input expected a file path, got {type(path).__name__}. "
+                         "Hint: pass a str or pathlib.Path.")
     path = Path(path)
     if not path.is_file():
         _fail(path, "no such file", "check the path (relative paths start from the working directory)")
