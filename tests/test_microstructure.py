@@ -186,6 +186,23 @@ def test_finite_reach_caps_dn2_and_fills_far_nodes():
     np.testing.assert_array_equal(capped.nearest_id[near], full.nearest_id[near])
 
 
+def test_non_periodic_inclusion_cut_by_the_domain():
+    X = nodes(32, 3)
+    exact = np.minimum(np.linalg.norm(X - np.array([0.05, 0.5, 0.5]), axis=-1) - 0.2,
+                       np.linalg.norm(X - np.array([0.6, 0.5, 0.5]), axis=-1) - 0.15)
+    ms = Microstructure.from_levelset(exact, periodic=False)
+    assert len(ms.inclusions) == 2 and not ms.periodic
+    assert ms.inclusions[0].lower[0] == 0.0
+    np.testing.assert_allclose(ms.inclusions[1].lower, [0.45, 0.35, 0.35], atol=1e-3)
+    pts = np.random.default_rng(8).random((1000, 3)) * (31 / 32)
+    ref = np.minimum(np.linalg.norm(pts - np.array([0.05, 0.5, 0.5]), axis=-1) - 0.2,
+                     np.linalg.norm(pts - np.array([0.6, 0.5, 0.5]), axis=-1) - 0.15)
+    assert np.abs(ms.phi(pts) - ref)[np.abs(ref) < 1 / 32].max() < 0.05 / 32
+    clear = np.abs(ref) > 0.1 / 32
+    np.testing.assert_array_equal((ms.label(pts) > 0)[clear], (ref < 0)[clear])
+    assert ms.dn2.min() > 0.1
+
+
 # ---- labels and functions ----
 
 def test_from_labels():
@@ -307,3 +324,41 @@ def test_bad_functions():
     ms = Microstructure.from_functions([jball((0.5, 0.5), 0.2)], box, shape)
     _raises("points of shape", ms.phi, np.zeros((3, 3)))
     _raises("inclusion id", ms.inclusion_phi, 2, np.zeros((1, 2)))
+
+
+def test_no_recompilation_for_new_points(two_spheres):
+    from jaxmesh.geometry._microstructure import _map_kernel
+
+    ms, _, _ = two_spheres
+    rng = np.random.default_rng(7)
+    ms.phi(rng.random((500, 3)))
+    before = _map_kernel._cache_size()
+    for _ in range(3):  # same power-of-two buckets: the compiled kernels are reused
+        ms.phi(rng.random((500, 3)))
+        ms.label(rng.random((500, 3)))
+    assert _map_kernel._cache_size() <= before + 1  # label's smaller margin may add one bucket
+
+
+@pytest.mark.slow
+def test_many_inclusions_memory_scales_with_windows():
+    n, rng = 96, np.random.default_rng(0)
+    centers, radii = [], []
+    while len(centers) < 150:
+        c, r = rng.random(3), rng.uniform(0.03, 0.05)
+        if all(np.linalg.norm((c - c2) - np.round(c - c2)) > r + r2 + 0.03 for c2, r2 in zip(centers, radii)):
+            centers.append(c)
+            radii.append(r)
+    X = nodes(n, 3)
+    phi = np.full((n,) * 3, np.inf)
+    for c, r in zip(centers, radii):
+        phi = np.minimum(phi, ball(X, c, r))
+    ms = Microstructure.from_levelset(phi)
+    assert len(ms.inclusions) == 150
+    # each window is the inclusion's extent + 2 x 7 steps, rounded up by at most 1.5 per axis
+    for inc in ms.inclusions:
+        extent = (inc.upper - inc.lower) * n + 2 * 7
+        assert all(e < w <= 1.5 * e + 1 for e, w in zip(extent, inc.phi_fn.args[0].shape))
+    assert sum(inc.phi_fn.args[0].size for inc in ms.inclusions) < 150 * phi.size / 30  # not 150 grids
+    near = np.abs(phi) < 2 / n
+    np.testing.assert_allclose(ms.dn1[near], phi[near], atol=1e-12)
+    assert ms.volume_fraction() == pytest.approx(sum(4 / 3 * np.pi * r**3 for r in radii), rel=0.02)
