@@ -73,7 +73,7 @@ def test_closed_sphere_has_none_and_planted_defect_found():
     q = p.copy()
     q[0] *= -1.5  # pull a vertex through the far side: its fan crosses the sphere
     assert len(intersecting_pairs(q, f)) > 0
-    two = np.vstack([p, p + [1.5, 0, 0]])  # two overlapping spheres
+    two = np.vstack([p, p + [1.5, 0.013, 0.029]])  # two overlapping spheres (generic position)
     assert len(intersecting_pairs(two, np.vstack([f, f + len(p)]))) > 0
 
 
