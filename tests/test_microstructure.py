@@ -315,6 +315,8 @@ def test_bad_functions():
     assert len(ok.inclusions) == 2
     _raises("negative somewhere", Microstructure.from_functions, [lambda p: jnp.ones(p.shape[0])], box, shape)
     _raises("negative", Microstructure.from_functions, [jball((0.51, 0.5), 0.2 * h)], box, shape)
+    _raises(r"inclusion 2: 5 negative samples", Microstructure.from_functions,
+            [jball((0.3, 0.5), 0.1), jball((0.75, 0.5), 1.2 * h)], box, shape)
     _raises("failed", Microstructure.from_functions, [lambda p: p @ jnp.ones(3)], box, shape)
     _raises("NaN", Microstructure.from_functions, [lambda p: jnp.full(p.shape[0], jnp.nan)], box, shape)
     _raises("callables", Microstructure.from_functions, [1.0], box, shape)

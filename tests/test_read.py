@@ -101,3 +101,29 @@ def test_bad_files(tmp_path):
         load_input(tmp_path / "c.npy")
     with pytest.raises(ValueError, match="file path"):
         load_input(42)
+
+
+def test_npz_with_analytic_inclusions_uses_the_generator_hook(tmp_path, monkeypatch):
+    import sys
+    import types
+
+    phi = _field(24, 2)
+    np.savez(tmp_path / "g.npz", phi=phi, box=np.array([1.0, 1.0]), kind=np.array(["sphere"]),
+             centers=np.array([[0.5, 0.5]]), axes=np.array([[0.25, 0.25]]), rotations=np.eye(2)[None])
+    seen = {}
+
+    def hook(data):
+        seen.update(data)
+        return "analytic" if seen.get("use") is None else None
+
+    fake = types.ModuleType("jaxmesh._generate")
+    fake.microstructure_from_npz = hook
+    monkeypatch.setitem(sys.modules, "jaxmesh._generate", fake)
+    assert load_input(tmp_path / "g.npz", box=(2.0, 2.0), periodic=False) == "analytic"
+    np.testing.assert_array_equal(seen["box"], [2.0, 2.0])  # the arguments override the file
+    assert not seen["periodic"] and "centers" in seen
+    seen["use"] = "fallback"  # the hook declines: the level set is used
+    ms = load_input(tmp_path / "g.npz")
+    assert isinstance(ms, Microstructure) and len(ms.inclusions) == 1
+    monkeypatch.setitem(sys.modules, "jaxmesh._generate", types.ModuleType("jaxmesh._generate"))
+    assert isinstance(load_input(tmp_path / "g.npz"), Microstructure)  # no hook at all
