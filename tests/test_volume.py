@@ -305,3 +305,61 @@ def test_label_cells_rejects_inward_box_faces():
                           s2.periodic_pairs)
     with pytest.raises(MeshingError, match="labels"):
         label_cells(points, cells, flipped)
+
+
+# ----------------------------------------------------------------------------- relaxation and slivers
+@pytest.fixture(scope="module")
+def relaxed_case(sphere_case):
+    from jaxmesh._truss import TrussConfig
+    from jaxmesh._volume_relax import relax_volume
+
+    _, s2, mesh, spheres = sphere_case
+    truss = TrussConfig(dt=0.2, fscale=1.0, alpha_ramp_iterations=0, alpha_start=1.0, max_iterations=20,
+                        max_retriangulations=2, retriangulate_tol=0.3, max_dt_retries=0, ball_vertex_stiffness=1.0,
+                        final_triangulation=False)
+    out, s3 = relax_volume(mesh, s2, _h, VolumeConfig(truss=truss), return_surface=True)
+    return s2, s3, mesh, out, spheres
+
+
+def test_relaxed_mesh_keeps_surface_and_validates(relaxed_case):
+    s2, s3, _, out, spheres = relaxed_case
+    assert _present(s3, out)
+    np.testing.assert_array_equal(out.points[: s2.n_points], s2.points)  # surface nodes bit-identical
+    if s3.n_triangles == s2.n_triangles:
+        assert _present(s2, out)
+    rep = validate(out, sphere_microstructure(spheres))
+    assert rep.ok, rep.summary()
+
+
+def test_relaxed_quality_and_slivers(relaxed_case):
+    _, _, before, out, _ = relaxed_case
+    q0, q = cell_quality(before.points, before.cells), cell_quality(out.points, out.cells)
+    d = dihedral_angles(out.points, out.cells)
+    info = out.metadata["volume"]
+    assert np.mean(q < 0.3) <= np.mean(q0 < 0.3)  # relaxation + sliver removal never make it worse
+    assert np.mean(q < 0.3) < 0.01
+    assert q.mean() > 0.8
+    assert np.minimum(d, 180 - d).min() >= 10.0 - 1e-9 or info["slivers_after"] > 0
+    assert info["slivers_after"] == int((np.minimum(d, 180 - d).min(axis=1) < 10.0).sum())
+
+
+def test_sliver_moves_and_flips_fix_a_planted_sliver():
+    from jaxmesh._slivers import flip_slivers, improve_vertices, min_dihedral
+
+    # a 2-3 configuration: two tets across face abc; p, q on either side, nearly coplanar with a, b, c
+    pts = np.array([[0, 0, 0], [1, 0, 0], [0.5, 0.9, 0], [0.5, 0.3, 0.05], [0.5, 0.3, -0.9]], float)
+    cells = np.array([[0, 1, 2, 3], [0, 1, 2, 4]])
+    cells[signed_volumes(pts, cells) < 0, :2] = cells[signed_volumes(pts, cells) < 0, 1::-1]
+    assert min_dihedral(pts, cells).min() < 10
+    free = np.array([False, False, False, True, False])
+    moved, n_moves = improve_vertices(pts, cells, free, np.full(5, 1.0), 10.0)
+    assert n_moves >= 1 and min_dihedral(moved, cells).min() > min_dihedral(pts, cells).min()
+    assert signed_volumes(moved, cells).min() > 0
+    # flips: protected face blocks the flip, unprotected face allows it when it helps
+    keys = np.sort(triangle_keys(np.array([[0, 1, 2]]), 5))
+    c_prot, n_prot = flip_slivers(pts, cells, keys, 10.0)
+    assert n_prot == 0 and np.array_equal(c_prot, cells)
+    c_flip, n_flip = flip_slivers(pts, cells, np.zeros(0, np.int64), 10.0)
+    if n_flip:
+        assert len(c_flip) == 3 and abs(signed_volumes(pts, c_flip).sum() - signed_volumes(pts, cells).sum()) < 1e-12
+        assert min_dihedral(pts, c_flip).min() > min_dihedral(pts, cells).min()
