@@ -269,6 +269,8 @@ def test_bad_levelsets():
     _raises("periodic=False", Microstructure.from_levelset, np.linalg.norm(X - 0.3, axis=-1) - 0.2)
     ms = Microstructure.from_levelset(np.linalg.norm(X - 0.3, axis=-1) - 0.2, periodic=False)
     assert len(ms.inclusions) == 1
+    closed = np.pad(phi, [(0, 1)] * 3, mode="wrap")  # sampled at x = i L / (n - 1): nodes at x = L
+    _raises(r"axes \[0, 1, 2\] the last slice repeats the first", Microstructure.from_levelset, closed)
     speck = phi.copy()
     speck[2, 2, 2] = -0.01  # one negative node: not resolved by the grid
     _raises(r"inclusion 1: 1 negative samples", Microstructure.from_levelset, speck)

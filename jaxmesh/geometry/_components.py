@@ -5,7 +5,7 @@ the window is grid node u mod n when periodic). It holds the inclusion's own lev
 inside its *core* (the inclusion's index arc plus a few steps), padded by a few more steps so that
 the periodic B-spline prefilter of the window does not feel the window's own wrap-around. An axis
 whose window would reach the grid size becomes a *full* axis: the whole periodic axis, centred on
-the inclusion.
+the inclusion. The validation of raw inputs (fields, labels, boxes, points) lives here too.
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
-
 
 
 @dataclass(frozen=True)
@@ -296,6 +295,13 @@ def chord_thickness(field: np.ndarray, own: np.ndarray) -> float:
         chord = np.where(closed, hi - lo, np.inf)
         best = np.minimum(best, np.moveaxis(chord, -1, k))
     return float(best[own].max()) if own.any() else 0.0
+
+
+def repeated_end_axes(values: np.ndarray) -> list[int]:
+    """Axes whose last slice repeats the first exactly (a field sampled at x = i L / (n - 1))."""
+    return [k for k in range(values.ndim)
+            if np.array_equal(np.take(values, 0, axis=k), np.take(values, -1, axis=k))
+            and not np.array_equal(np.take(values, 0, axis=k), np.take(values, 1, axis=k))]
 
 
 def periodicity_ratios(values: np.ndarray) -> list[tuple[float, float]]:

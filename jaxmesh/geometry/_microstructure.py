@@ -351,6 +351,13 @@ class Microstructure:
                 f"(min {v.min():.4g}). Hint: the convention is negative inside; pass -phi if reversed."
             )
         if periodic:
+            repeated = comp.repeated_end_axes(v)
+            if repeated:
+                raise ValueError(
+                    f"from_levelset expected a node-centred periodic grid (x = i * L / n, i < n), but along "
+                    f"axes {repeated} the last slice repeats the first. Hint: drop it, e.g. values[:-1] "
+                    "along those axes (the periodic grid has no node at x = L)."
+                )
             for k, (jump, typical) in enumerate(comp.periodicity_ratios(v)):
                 if jump > 3.0 * typical + 1e-12 * (np.abs(v).max() + 1):
                     raise ValueError(
