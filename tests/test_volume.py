@@ -360,6 +360,27 @@ def test_sliver_moves_and_flips_fix_a_planted_sliver():
     c_prot, n_prot = flip_slivers(pts, cells, keys, 10.0)
     assert n_prot == 0 and np.array_equal(c_prot, cells)
     c_flip, n_flip = flip_slivers(pts, cells, np.zeros(0, np.int64), 10.0)
+    assert n_flip == 1  # the 2-3 flip around pq: 2 tets -> 3, same volume, no sliver left
     if n_flip:
         assert len(c_flip) == 3 and abs(signed_volumes(pts, c_flip).sum() - signed_volumes(pts, cells).sum()) < 1e-12
         assert min_dihedral(pts, c_flip).min() > min_dihedral(pts, cells).min()
+
+
+# ----------------------------------------------------------------------------- on the surface stage's output
+@pytest.mark.slow
+@pytest.mark.parametrize("spheres", [(((0.05, 0.5, 0.5), 0.25, 0),), (((0.02, 0.03, 0.97), 0.3, 0),)],
+                         ids=["face", "corner"])
+def test_cut_spheres_from_surface_stage(spheres):
+    """Spheres cut by a box face / an edge and a corner: real cuts from jaxmesh._faces.mesh_surfaces.
+    Recovery splits box-face edges (mirrored) and projected interface edges; the result validates."""
+    from jaxmesh._faces import mesh_surfaces
+
+    ms = sphere_microstructure(spheres)
+    s = mesh_surfaces(ms, 0.1)
+    mesh, s2 = tetrahedralize(s, h_fn=lambda p: np.full(len(p), 0.1), config=NOREL,
+                              project_fn=levelset_projector(ms.inclusion_phi), label_fn=ms.label,
+                              return_surface=True)
+    assert _present(s2, mesh)
+    assert s2.n_triangles >= s.n_triangles
+    rep = validate(mesh, ms)
+    assert rep.ok, rep.summary()
