@@ -1,0 +1,101 @@
+"""Inclusion surfaces: refinement / flips / cuts keep a closed oriented surface; one sphere meshed at
+h = r/6 (volume, level set, quality); two spheres one grid step apart stay two and do not intersect."""
+
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from jaxmesh._intersect import intersecting_pairs
+from jaxmesh._quality import cell_quality, min_angles
+from jaxmesh._surface import SurfaceConfig, as_size_fn, enclosed_volume, extract, mesh_inclusion, project
+from jaxmesh._surface_ops import cut_plane, flip_edges, half_edges, refine, straddling
+from jaxmesh.geometry._microstructure import Microstructure
+from jaxmesh.geometry._shapes import sphere_sdf
+
+
+def _closed(tris):
+    e = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+    _, cnt = np.unique(e, axis=0, return_counts=True)
+    directed = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    return set(cnt.tolist()) == {2} and len(np.unique(directed, axis=0)) == len(directed)  # oriented
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    phi = sphere_sdf(np.array([0.5, 0.5, 0.5]), 0.2)
+    p, t = extract(phi, [0.3] * 3, [0.7] * 3, 0.05)
+    p, _, _ = project(phi, p, np.zeros(p.shape, bool))
+    return phi, p, t
+
+
+def test_marching_cubes_surface_closed_outward_on_level_set(sphere):
+    phi, p, t = sphere
+    assert _closed(t)
+    assert enclosed_volume(p, t) == pytest.approx(4 / 3 * np.pi * 0.2**3, rel=0.05)
+    assert np.abs(np.linalg.norm(p - 0.5, axis=1) - 0.2).max() < 1e-12
+
+
+def test_refine_conforming(sphere):
+    _, p, t = sphere
+    edges, _ = half_edges(t, len(p))
+    split = np.random.default_rng(0).random(len(edges)) < 0.3
+    q, t2, parents = refine(p, t, split)
+    assert _closed(t2) and len(q) == len(p) + split.sum()
+    assert enclosed_volume(q, t2) == pytest.approx(enclosed_volume(p, t), rel=1e-12)  # midpoints: same solid
+    q, t4, _ = refine(p, t, np.ones(len(edges), bool))
+    assert len(t4) == 4 * len(t)
+
+
+def test_flips_raise_quality_and_keep_surface(sphere):
+    _, p, t = sphere
+    t2, n = flip_edges(p, t)
+    assert n > 0 and _closed(t2)
+    assert cell_quality(p, t2).min() >= cell_quality(p, t).min() - 1e-12
+    assert np.sort(cell_quality(p, t2))[:20].mean() > np.sort(cell_quality(p, t))[:20].mean()
+
+
+def test_cut_plane_splits_without_straddling(sphere):
+    phi, p, t = sphere
+    box = (0.55, 1.0, 1.0)  # the plane x = 0.55 cuts the sphere
+    q, t2, flags, new = cut_plane(p, t, np.zeros(p.shape, bool), 0, 0.55)
+    assert len(new) > 0 and (q[new, 0] == 0.55).all() and flags[new, 0].all()
+    assert _closed(t2) and not straddling(q, t2, box).any()
+    assert enclosed_volume(q, t2) == pytest.approx(enclosed_volume(p, t), rel=1e-12)
+
+
+def test_sphere_at_r_over_6():
+    r = 0.2
+    ms = Microstructure.from_functions([sphere_sdf(np.array([0.5, 0.5, 0.5]), r)], (1.0, 1.0, 1.0), (32, 32, 32))
+    h = r / 6
+    out = mesh_inclusion(ms.inclusions[0], as_size_fn(h, ms.box), ms.box, SurfaceConfig())
+    p, t = out["points"], out["triangles"]
+    assert _closed(t)
+    assert enclosed_volume(p, t) == pytest.approx(4 / 3 * np.pi * r**3, rel=0.01)
+    assert np.abs(ms.inclusion_phi(1, p)).max() < 1e-6 * h
+    assert cell_quality(p, t).mean() >= 0.85 and min_angles(p, t).min() >= 20.0
+    edges, _ = half_edges(t, len(p))
+    length = np.linalg.norm(p[edges[:, 0]] - p[edges[:, 1]], axis=1)
+    assert 0.7 * h < np.median(length) < 1.5 * h
+    assert len(intersecting_pairs(p, t)) == 0
+
+
+def test_two_spheres_one_grid_step_apart():
+    r, step = 0.15, 1.0 / 32
+    c = [np.array([0.3, 0.5, 0.5]), np.array([0.3 + 2 * r + step, 0.5, 0.5])]
+    ms = Microstructure.from_functions([sphere_sdf(x, r) for x in c], (1.0, 1.0, 1.0), (32, 32, 32))
+    assert len(ms.inclusions) == 2
+    h = as_size_fn(r / 4, ms.box)
+    outs = [mesh_inclusion(inc, h, ms.box) for inc in ms.inclusions]
+    for o in outs:
+        assert _closed(o["triangles"])
+    p = np.vstack([outs[0]["points"], outs[1]["points"]])
+    t = np.vstack([outs[0]["triangles"], outs[1]["triangles"] + len(outs[0]["points"])])
+    assert len(intersecting_pairs(p, t)) == 0
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="snap_fraction"):
+        SurfaceConfig(snap_fraction=0.7)
+    with pytest.raises(ValueError, match="h: expected"):
+        as_size_fn(-1.0, (1.0, 1.0, 1.0))
