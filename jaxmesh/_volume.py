@@ -265,8 +265,7 @@ def label_cells(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh) -> 
         has = table.counts[fidx] > rep
         c = cells_by[offsets[fidx[has]] + rep]
         t = tri[has]
-        apex = np.array([[v for v in cell if v not in tt][0] for cell, tt in zip(cells[c], t)], dtype=np.int64) \
-            if len(c) else np.zeros(0, np.int64)
+        apex = cells[c].sum(axis=1) - t.sum(axis=1)  # the tet's vertex that is not on the triangle
         x = points
         side = np.einsum("ij,ij->i", np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]]), x[apex] - x[t[:, 0]])
         region = np.where(side > 0, surface.sides[has, 1], surface.sides[has, 0])
