@@ -1,0 +1,317 @@
+"""Generators: periodic RSA with a guaranteed gap (spheres exact, ellipsoids by dense surface
+sampling), counts / fractions, seeds, densification, excursion sets, level-set sampling, npz files."""
+
+import itertools
+import math
+import os
+
+import numpy as np
+import pytest
+from scipy.optimize import minimize
+
+import jaxmesh._generate as gen
+from jaxmesh._errors import MeshingError
+from jaxmesh._generate import (
+    InclusionSpec,
+    excursion_set,
+    microstructure_from_npz,
+    microstructure_from_specs,
+    random_inclusions,
+    sample_levelset,
+    write_input,
+)
+from jaxmesh._periodic import image_shifts, minimum_image
+
+
+def _pairs_with_images(specs, box):
+    """All (i, j, delta) with delta = c_i - (c_j + shift) over every image shift, i < j."""
+    box = np.asarray(box, float)
+    for i, j in itertools.combinations(range(len(specs)), 2):
+        for s in image_shifts(len(box), box):
+            yield i, j, minimum_image(specs[i].center - specs[j].center, box) - s
+
+
+def _sphere_min_gap(specs, box):
+    return min(np.linalg.norm(d) - specs[i].axes[0] - specs[j].axes[0] for i, j, d in _pairs_with_images(specs, box))
+
+
+def _surface(spec, params):
+    a, r = spec.axes, spec.rotation
+    if spec.dim == 2:
+        u = np.array([np.cos(params[0]), np.sin(params[0])])
+    else:
+        th, ph = params
+        u = np.array([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)])
+    return (a * u) @ r.T
+
+
+def _ellipsoid_distance(si, sj, delta):
+    """dist(E_i, E_j + (c_i - delta)) by dense sampling of E_i's surface + a local polish; the
+    distance of a surface point to E_j is the exact SDF (a different algorithm from the generator)."""
+    shifted = InclusionSpec(sj.kind, np.zeros(sj.dim), sj.axes, sj.rotation)
+
+    def f(q):
+        return gen._spec_sdf_np(shifted, (_surface(si, q) + delta)[None])[0]
+
+    if si.dim == 2:
+        grid = [np.array([t]) for t in np.linspace(0, 2 * np.pi, 720, endpoint=False)]
+    else:
+        grid = [np.array([t, p]) for t in np.linspace(0, np.pi, 40) for p in np.linspace(0, 2 * np.pi, 80)]
+    pts = np.stack([_surface(si, q) for q in grid]) + delta
+    vals = gen._spec_sdf_np(shifted, pts)
+    best = []
+    for k in np.argsort(vals)[:2]:
+        res = minimize(f, grid[k], method="Nelder-Mead", options={"xatol": 1e-10, "fatol": 1e-14})
+        best.append(min(res.fun, vals[k]))
+    return min(best)
+
+
+def _ellipsoid_min_gap(specs, box, gap):
+    """Smallest surface distance over the pairs whose bounding spheres come within the gap."""
+    out = np.inf
+    for i, j, d in _pairs_with_images(specs, box):
+        if np.linalg.norm(d) < specs[i].axes.max() + specs[j].axes.max() + gap:
+            out = min(out, _ellipsoid_distance(specs[i], specs[j], d))
+    return out
+
+
+def _fraction(specs, box):
+    return sum(s.volume for s in specs) / math.prod(box)
+
+
+def _cut_by_faces(specs, box):
+    return any(np.any((s.center < s.axes.max()) | (s.center > np.asarray(box) - s.axes.max())) for s in specs)
+
+
+# ------------------------------------------------------------------------------------------ RSA
+
+
+@pytest.mark.parametrize("box", [(1.0, 1.0, 1.0), (1.0, 0.8, 1.2)])
+def test_spheres_count_gap_and_periodic_cut(box):
+    specs = random_inclusions(box, n=25, radius=(0.1, 0.02), min_gap=0.03, seed=3)
+    assert len(specs) == 25 and all(s.kind == "sphere" for s in specs)
+    assert _sphere_min_gap(specs, box) >= 0.03 - 1e-12
+    assert all(np.all((s.center >= 0) & (s.center < box)) for s in specs)
+    assert _cut_by_faces(specs, box)
+    radii = np.array([s.axes[0] for s in specs])
+    assert np.all((radii >= 0.06) & (radii <= 0.14)) and radii.std() > 0.005
+
+
+def test_circles_volume_fraction_matches_analytic_sum():
+    box = (1.0, 1.0)
+    specs = random_inclusions(box, volume_fraction=0.4, radius=(0.05, 0.015), min_gap=0.01, seed=1)
+    assert abs(_fraction(specs, box) - 0.4) <= 0.005
+    np.testing.assert_allclose(_fraction(specs, box), sum(math.pi * s.axes[0] ** 2 for s in specs))
+    assert _sphere_min_gap(specs, box) >= 0.01 - 1e-12 and _cut_by_faces(specs, box)
+
+
+def test_count_and_fraction_together_stop_at_first():
+    box = (1.0, 1.0)
+    few = random_inclusions(box, n=5, volume_fraction=0.5, radius=0.05, seed=0)
+    assert len(few) == 5  # the count comes first
+    many = random_inclusions(box, n=500, volume_fraction=0.2, radius=0.05, min_gap=0.01, seed=0)
+    assert len(many) < 500 and abs(_fraction(many, box) - 0.2) <= 0.005
+
+
+def test_seed_reproducible_and_different_seeds_differ():
+    kw = dict(n=12, shape="ellipsoid", radius=(0.12, 0.03), min_gap=0.02)
+    a, b = random_inclusions((1, 1, 1), seed=7, **kw), random_inclusions((1, 1, 1), seed=7, **kw)
+    c = random_inclusions((1, 1, 1), seed=8, **kw)
+    for s, t in zip(a, b):
+        np.testing.assert_array_equal(s.center, t.center)
+        np.testing.assert_array_equal(s.rotation, t.rotation)
+    assert not np.allclose([s.center for s in a], [s.center for s in c])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_ellipsoids_gap_by_dense_surface_sampling(dim):
+    box = (1.0,) * dim
+    gap = 0.03
+    specs = random_inclusions(box, volume_fraction=0.3 if dim == 2 else 0.15, shape="ellipsoid",
+                              radius=(0.12, 0.03) if dim == 2 else (0.16, 0.02), aspect=(1.5, 3.0), min_gap=gap,
+                              seed=dim)
+    for s in specs:
+        np.testing.assert_allclose(s.rotation.T @ s.rotation, np.eye(dim), atol=1e-12)
+        assert 1.5 - 1e-9 <= s.axes[0] / s.axes[-1] <= 3.0 + 1e-9
+    found = _ellipsoid_min_gap(specs, box, gap)
+    assert gap - 1e-9 <= found < 1.5 * gap  # kept, and some pair comes close (the check has teeth)
+    assert _cut_by_faces(specs, box)
+
+
+def test_densification_keeps_the_gap(monkeypatch):
+    calls = []
+    relax = gen._relax
+    monkeypatch.setattr(gen, "_relax", lambda *a, **k: calls.append(1) or relax(*a, **k))
+    box = (1.0, 1.0)
+    specs = random_inclusions(box, volume_fraction=0.6, radius=lambda rng, n: rng.uniform(0.03, 0.09, n),
+                              min_gap=0.005, seed=2, max_attempts=64)
+    assert calls, "RSA alone should not reach 60% here: the densification path must run"
+    assert abs(_fraction(specs, box) - 0.6) <= 0.005
+    assert _sphere_min_gap(specs, box) >= 0.005 - 1e-12
+    ell = random_inclusions(box, volume_fraction=0.5, shape="ellipsoid", radius=(0.07, 0.01), min_gap=0.01,
+                            seed=4, max_attempts=32)
+    assert len(calls) == 2 and abs(_fraction(ell, box) - 0.5) <= 0.005
+    assert _ellipsoid_min_gap(ell, box, 0.01) >= 0.01 - 1e-9
+
+
+def test_gap_certificate_against_sampled_distances():
+    rng = np.random.default_rng(5)
+    p, gap = 200, 0.02
+    a, b = rng.uniform(0.05, 0.2, (p, 3)), rng.uniform(0.05, 0.2, (p, 3))
+    ra = np.stack([gen._random_rotation(rng, 3) for _ in range(p)])
+    rb = np.stack([gen._random_rotation(rng, 3) for _ in range(p)])
+    delta = rng.normal(size=(p, 3))
+    delta *= rng.uniform(0.15, 0.45, (p, 1)) / np.linalg.norm(delta, axis=1, keepdims=True)
+    ok, _ = gen._ellipsoid_gap(delta, gen._shape_matrices(a, ra), gen._shape_matrices(b, rb), gap)
+    assert 0.2 < ok.mean() < 0.9
+    for k in range(0, p, 4):
+        si, sj = InclusionSpec("ellipsoid", np.zeros(3), a[k], ra[k]), InclusionSpec("ellipsoid", np.zeros(3), b[k], rb[k])
+        true = _ellipsoid_distance(si, sj, delta[k])
+        assert not ok[k] or true >= gap - 1e-9  # never a false certificate
+        assert ok[k] or true <= gap + 1e-6  # and not conservative beyond the tolerance
+
+
+def test_jammed_fraction_raises_with_what_was_reached():
+    with pytest.raises(MeshingError, match=r"jammed: RSA placed volume fraction 0\.\d+"):
+        random_inclusions((1.0, 1.0), volume_fraction=0.8, radius=0.05, min_gap=0.02, seed=0, max_attempts=32,
+                          max_relax_iter=20)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(n=5, radius=-0.1), "radius"),
+        (dict(n=5, radius=(0.1, -0.01)), "radius"),
+        (dict(volume_fraction=1.2), "volume_fraction"),
+        (dict(volume_fraction=0.0), "volume_fraction"),
+        (dict(n=5, min_gap=-0.01), "min_gap"),
+        (dict(n=5, shape="cube"), "shape"),
+        (dict(), "n or volume_fraction"),
+        (dict(n=0), "n: expected"),
+        (dict(n=3, radius=0.6), "half the box"),
+        (dict(n=3, shape="ellipsoid", aspect=(0.5, 2.0)), "aspect"),
+        (dict(n=3, box=(1.0,)), "box"),
+        (dict(n=3, box=(1.0, -1.0, 1.0)), "box"),
+        (dict(n=3, box=(1.0, 1.0, 1.0, 1.0)), "box"),
+    ],
+)
+def test_bad_inputs_raise_value_error(kwargs, match):
+    box = kwargs.pop("box", (1.0, 1.0, 1.0))
+    with pytest.raises(ValueError, match=match) as err:
+        random_inclusions(box, **kwargs)
+    assert "expected" in str(err.value) or "Hint" in str(err.value)
+
+
+# ---------------------------------------------------------------------------------- level sets
+
+
+def test_sample_levelset_exact_periodic_dn1():
+    box, shape = (1.0, 1.0, 1.0), (16, 16, 16)
+    spec = InclusionSpec("sphere", np.array([0.05, 0.5, 0.5]), np.full(3, 0.2), np.eye(3))
+    phi = sample_levelset([spec], box, shape)
+    h = 1.0 / 16
+    x = np.stack(np.meshgrid(*[np.arange(16) * h] * 3, indexing="ij"), -1)
+    ref = np.linalg.norm(minimum_image(x - spec.center, np.ones(3)), axis=-1) - 0.2
+    np.testing.assert_allclose(phi, ref, atol=1e-14)
+    assert phi[15, 8, 8] < 0  # the sphere wraps across x = 0
+    specs = random_inclusions(box, n=6, shape="ellipsoid", radius=(0.15, 0.02), min_gap=0.02, seed=0)
+    phi = sample_levelset(specs, box, shape)
+    brute = np.full(shape, np.inf)
+    for s in specs:
+        for t in image_shifts(3, np.ones(3)):
+            brute = np.minimum(brute, gen._spec_sdf_np(s, (x - t).reshape(-1, 3)).reshape(shape))
+    np.testing.assert_allclose(phi, brute, atol=1e-12)
+    assert abs((phi < 0).mean() - _fraction(specs, box)) < 0.03
+
+
+def test_excursion_set_periodic_fraction_and_distance_like():
+    shape, box = (40, 40), (1.0, 1.0)
+    phi = excursion_set(box, shape, correlation_length=0.08, volume_fraction=0.35, seed=1)
+    assert phi.shape == shape and phi.dtype == np.float64
+    assert abs((phi < 0).mean() - 0.35) < 0.02
+    # periodic: the jump across the wrap is like any jump between neighbours
+    inner = np.abs(np.diff(phi, axis=0)).max()
+    assert np.abs(phi[0] - phi[-1]).max() <= inner + 1e-12
+    gy, gx = np.gradient(phi, 1 / 40)
+    assert 0.8 < np.median(np.hypot(gx, gy)) < 1.2
+    np.testing.assert_array_equal(phi, excursion_set(box, shape, correlation_length=0.08, volume_fraction=0.35,
+                                                     seed=1))
+    other = excursion_set(box, shape, correlation_length=0.08, volume_fraction=0.35, seed=2)
+    assert not np.array_equal(phi < 0, other < 0)
+    phi3 = excursion_set((1.0, 1.0, 1.0), (24, 24, 24), correlation_length=0.12, volume_fraction=0.2, seed=0)
+    assert abs((phi3 < 0).mean() - 0.2) < 0.02
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [dict(correlation_length=-1.0, volume_fraction=0.3), dict(correlation_length=0.1, volume_fraction=1.5),
+     dict(correlation_length=0.001, volume_fraction=0.3)],
+)
+def test_excursion_set_bad_inputs(kwargs):
+    with pytest.raises(ValueError, match="expected"):
+        excursion_set((1.0, 1.0), (32, 32), **kwargs)
+    with pytest.raises(ValueError, match="grid_shape"):
+        excursion_set((1.0, 1.0), (32,), correlation_length=0.1, volume_fraction=0.3)
+
+
+# ------------------------------------------------------------------------------------- files
+
+
+def test_write_input_round_trip_and_microstructure(tmp_path):
+    box, shape = (1.0, 1.0, 1.0), (16, 16, 16)
+    specs = random_inclusions(box, n=3, shape="ellipsoid", radius=(0.2, 0.02), min_gap=0.1, seed=0)
+    path = tmp_path / "rve.npz"
+    write_input(path, specs, box, shape)
+    with np.load(path, allow_pickle=False) as z:
+        data = {k: z[k] for k in z.files}
+    assert sorted(data) == ["axes", "box", "centers", "kind", "periodic", "phi", "rotations"]
+    assert data["phi"].dtype == np.float64 and data["phi"].shape == shape and bool(data["periodic"])
+    np.testing.assert_array_equal(data["kind"], ["ellipsoid"] * 3)
+    np.testing.assert_array_equal(data["centers"], [s.center for s in specs])
+    np.testing.assert_array_equal(data["rotations"], [s.rotation for s in specs])
+    np.testing.assert_allclose(data["phi"], sample_levelset(specs, box, shape))
+    ms = microstructure_from_npz(data)
+    assert len(ms.inclusions) == 3
+    np.testing.assert_allclose(ms.volume_fraction(), _fraction(specs, box), rtol=1e-12)
+    direct = microstructure_from_specs(specs, box, shape)
+    np.testing.assert_allclose(direct.dn1, ms.dn1)
+    assert microstructure_from_npz({"phi": data["phi"], "box": data["box"]}) is None
+    grf = tmp_path / "grf.npz"
+    write_input(grf, None, (1.0, 1.0), (32, 32), phi=excursion_set((1.0, 1.0), (32, 32), correlation_length=0.1,
+                                                                   volume_fraction=0.3))
+    with np.load(grf) as z:
+        assert sorted(z.files) == ["box", "periodic", "phi"]
+
+
+def test_write_input_is_atomic(tmp_path, monkeypatch):
+    path = tmp_path / "rve.npz"
+    path.write_bytes(b"old")
+
+    def broken(f, **data):
+        f.write(b"partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(gen.np, "savez", broken)
+    phi = np.zeros((8, 8))
+    with pytest.raises(OSError, match="disk full"):
+        write_input(path, None, (1.0, 1.0), (8, 8), phi=phi)
+    assert path.read_bytes() == b"old" and os.listdir(tmp_path) == ["rve.npz"]
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match="phi"):
+        write_input(tmp_path / "x.npz", None, (1.0, 1.0), (8, 8), phi=np.zeros((8, 9)))
+    with pytest.raises(ValueError, match="specs or phi"):
+        write_input(tmp_path / "x.npz", None, (1.0, 1.0), (8, 8))
+    assert os.listdir(tmp_path) == ["rve.npz"]
+
+
+def test_inclusion_spec_validation():
+    s = InclusionSpec("sphere", [0.5, 0.5], [0.1, 0.1], None)
+    assert s.dim == 2 and math.isclose(s.volume, math.pi * 0.01)
+    with pytest.raises(ValueError, match="equal axes"):
+        InclusionSpec("sphere", [0.5, 0.5], [0.1, 0.2], None)
+    with pytest.raises(ValueError, match="positive"):
+        InclusionSpec("ellipsoid", [0.5, 0.5], [0.1, 0.0], None)
+    with pytest.raises(ValueError, match="kind"):
+        InclusionSpec("cube", [0.5, 0.5], [0.1, 0.1], None)
+    with pytest.raises(ValueError, match="expected center"):
+        InclusionSpec("sphere", [0.5, 0.5, 0.5], [0.1, 0.1], None)
