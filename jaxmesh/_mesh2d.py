@@ -45,6 +45,7 @@ from ._triangulate2d import (
     improve_by_flips,
     interface_sides,
     orient_ccw,
+    refine_bad_triangles,
 )
 
 _CHUNK = 512  # fixed batch of the jitted level-set kernel: one compilation per level-set structure
@@ -67,6 +68,10 @@ class Mesh2DConfig:
         slide_box_nodes: box-edge nodes slide along their edge during the relaxation.
         truss: a ``TrussConfig`` for the relaxation (None: the engine's defaults).
         flip_rounds: rounds of quality edge flips (stage 6).
+        min_angle: Delaunay refinement target (degrees) for what the truss left below it (thin
+            gaps between interfaces and box edges); geometric corners sharper than it stay.
+        refine_rounds: refinement rounds (0: off). refine_min_edge: no refinement of triangles
+            whose shortest edge is below this fraction of h.
 
     Example:
         >>> Mesh2DConfig(removal_fraction=0.6, relax=False)
@@ -83,13 +88,20 @@ class Mesh2DConfig:
     slide_box_nodes: bool = True
     truss: object | None = None
     flip_rounds: int = 50
+    min_angle: float = 20.5
+    refine_rounds: int = 20
+    refine_min_edge: float = 0.05
 
     def __post_init__(self):
         for name in ("window_step", "removal_fraction"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0 < v <= 1):
                 raise ValueError(f"Mesh2DConfig.{name}: expected a number in (0, 1], got {v!r}; hint: e.g. 0.25")
-        for name in ("min_loop_segments", "newton_iterations", "split_rounds", "flip_rounds"):
+        if not (isinstance(self.min_angle, (int, float)) and 0 <= self.min_angle <= 30):
+            raise ValueError(f"Mesh2DConfig.min_angle: expected degrees in [0, 30], got {self.min_angle!r}")
+        if not (isinstance(self.refine_min_edge, (int, float)) and 0 < self.refine_min_edge <= 1):
+            raise ValueError(f"Mesh2DConfig.refine_min_edge: expected a fraction in (0, 1], got {self.refine_min_edge!r}")
+        for name in ("min_loop_segments", "newton_iterations", "split_rounds", "flip_rounds", "refine_rounds"):
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= (3 if name == "min_loop_segments" else 0)):
                 raise ValueError(f"Mesh2DConfig.{name}: expected a non-negative integer (>= 3 for loops), got {v!r}")
@@ -431,8 +443,19 @@ def mesh_2d(
         tri = constrained_delaunay(points, pslg.segments)
     lap("relaxation")
     tri, n_flips = improve_by_flips(points, tri, pslg.segments, max_rounds=cfg.flip_rounds)
+    refined = {}
+    if cfg.refine_rounds:
+        pslg, interior, tri, refined = refine_bad_triangles(
+            pslg, points[pslg.n_points:], tri, _project_fn(levels, box), size.np_fn,
+            min_angle=cfg.min_angle, min_edge=cfg.refine_min_edge, max_rounds=cfg.refine_rounds,
+        )  # fmt: skip
+        points = np.vstack([pslg.points, interior])
+        if refined["rounds"]:
+            tri, n_more = improve_by_flips(points, tri, pslg.segments, max_rounds=cfg.flip_rounds,
+                                           angle_floor=cfg.min_angle)
+            n_flips += n_more
     tri = orient_ccw(points, tri)
-    lap("flips")
+    lap("flips_and_refinement")
     inclusion_id = _labels(levels, points, tri, pslg)
     lap("labels")
     metadata = {
@@ -443,6 +466,7 @@ def mesh_2d(
         "counts": {
             "points": len(points), "triangles": len(tri), "constrained_nodes": pslg.n_points,
             "interior_nodes": len(interior), "segments": len(pslg.segments), **info, **rec, "quality_flips": n_flips,
+            "refinement": refined,
         },
         "relaxation": relax_info,
     }

@@ -15,6 +15,9 @@ which every constrained segment is an edge:
   non-constrained edges and their majority label.
 - :func:`improve_by_flips`: flips of non-constrained edges that raise the smaller quality
   of the two triangles (paper Fig. 12).
+- :func:`refine_bad_triangles`: Delaunay refinement (Ruppert 1995) of the triangles the truss
+  could not fix (thin gaps between an interface and a box edge, shallow crossings): circumcentres
+  inserted, encroached segments split (projected / mirrored), geometric corners left alone.
 """
 
 from __future__ import annotations
@@ -187,7 +190,7 @@ def split_segments(pslg: PSLG, which: np.ndarray, project_fn: Callable) -> PSLG:
     done = set()
     for s in which[inc[which] == BOX_SEGMENT]:
         t = partner[s]
-        a, b = seg[s]
+        a, b = pslg.segments[s]  # original ids: seg[] may already hold a split half
         ax = int(np.argmin(np.abs(pslg.points[a] - pslg.points[b])))  # axis-aligned: normal coords equal
         master, slave = (s, t) if pslg.points[a][ax] == 0.0 or t < 0 else (t, s)
         if master in done:
@@ -477,7 +480,13 @@ def distance_to_segments(points: np.ndarray, nodes: np.ndarray, segments: np.nda
 
 # ----------------------------------------------------------------------------- quality flips
 def improve_by_flips(
-    points: np.ndarray, triangles: np.ndarray, segments: np.ndarray, *, max_rounds: int = 50, tol: float = 1e-9
+    points: np.ndarray,
+    triangles: np.ndarray,
+    segments: np.ndarray,
+    *,
+    max_rounds: int = 50,
+    tol: float = 1e-9,
+    angle_floor: float | None = None,
 ) -> tuple[np.ndarray, int]:
     """Flip non-constrained edges whose flip raises the smaller quality of their two triangles.
 
@@ -487,6 +496,8 @@ def improve_by_flips(
     Args:
         points: (n, 2). triangles: (m, 3) CCW. segments: (s, 2) edges never flipped.
         max_rounds: rounds cap. tol: minimal gain in q.
+        angle_floor: if given, a flip may not bring the pair's smallest angle below
+            min(its current smallest angle, angle_floor) (q and angles disagree on slivers).
     Returns:
         (triangles (m, 3) CCW, number of flips).
     """
@@ -509,6 +520,10 @@ def improve_by_flips(
         new2 = np.stack([v[idx], d[idx], u[idx]], axis=1)
         new = np.minimum(cell_quality(points, new1), cell_quality(points, new2))
         gain = new - old
+        if angle_floor is not None:
+            a_old = np.minimum(triangle_angles(points, tri[t1[idx]]).min(1), triangle_angles(points, tri[t2[idx]]).min(1))
+            a_new = np.minimum(triangle_angles(points, new1).min(1), triangle_angles(points, new2).min(1))
+            gain[a_new < np.minimum(a_old, angle_floor)] = -1.0
         good = np.nonzero(gain > tol)[0]
         if good.size == 0:
             break
@@ -525,3 +540,122 @@ def improve_by_flips(
             flipped += 1
         total += flipped
     return tri, total
+
+
+# ----------------------------------------------------------------------------- Delaunay refinement
+def triangle_angles(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(m, 3) interior angles in degrees, column k at vertex k."""
+    p = points[triangles]
+    out = np.empty(triangles.shape)
+    for k in range(3):
+        u, v = p[:, (k + 1) % 3] - p[:, k], p[:, (k + 2) % 3] - p[:, k]
+        out[:, k] = np.degrees(np.arctan2(np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]), np.sum(u * v, axis=1)))
+    return out
+
+
+def _circumcenters(p: np.ndarray) -> np.ndarray:
+    a, b, c = p[:, 0], p[:, 1], p[:, 2]
+    ba, ca = b - a, c - a
+    d = 2.0 * (ba[:, 0] * ca[:, 1] - ba[:, 1] * ca[:, 0])
+    nb, nc = np.sum(ba * ba, axis=1), np.sum(ca * ca, axis=1)
+    ux = (ca[:, 1] * nb - ba[:, 1] * nc) / d
+    uy = (ba[:, 0] * nc - ca[:, 0] * nb) / d
+    return a + np.stack([ux, uy], axis=1)
+
+
+def refine_bad_triangles(
+    pslg: PSLG,
+    interior: np.ndarray,
+    triangles: np.ndarray,
+    project_fn: Callable,
+    h_fn: Callable,
+    *,
+    min_angle: float = 20.5,
+    min_edge: float = 0.05,
+    max_rounds: int = 20,
+) -> tuple[PSLG, np.ndarray, np.ndarray, dict]:
+    """Delaunay refinement of triangles with an angle below ``min_angle``.
+
+    The circumcentre of each bad triangle is inserted as a free node unless it encroaches on a
+    constrained segment (inside its diametral circle) or leaves the box; then that segment is
+    split instead (:func:`split_segments`: interface midpoints projected, box midpoints mirrored
+    onto the opposite edge). Left alone: a smallest angle enclosed by two constrained segments (a
+    geometric corner, e.g. an interface meeting a box edge at a shallow angle) and triangles whose
+    shortest edge is below ``min_edge * h`` (ends cascades near such corners).
+
+    Args:
+        pslg, interior, triangles: as returned by :func:`conforming_delaunay`.
+        project_fn: level-set projection callback (see :func:`split_segments`).
+        h_fn: NumPy size function (m, 2) -> (m,).
+        min_angle: target smallest angle (degrees). min_edge: fraction of h. max_rounds: cap.
+    Returns:
+        (pslg, interior, triangles, stats) with stats counting inserted nodes, splits and the
+        triangles left below the target.
+    """
+    box = np.asarray(pslg.box, dtype=float)
+    interior = np.asarray(interior, dtype=float).reshape(-1, 2)
+    tri = triangles
+    stats = {"inserted": 0, "split": 0, "rounds": 0, "left": 0}
+    for _ in range(max_rounds):
+        pts = np.vstack([pslg.points, interior])
+        n = len(pts)
+        ang = triangle_angles(pts, tri)
+        k = np.argmin(ang, axis=1)
+        rows = np.arange(len(tri))
+        v, v1, v2 = tri[rows, k], tri[rows, (k + 1) % 3], tri[rows, (k + 2) % 3]
+        seg_keys = edge_keys(pslg.segments[:, 0], pslg.segments[:, 1], n)
+        corner = np.isin(edge_keys(v, v1, n), seg_keys) & np.isin(edge_keys(v, v2, n), seg_keys)
+        p = pts[tri]
+        lmin = np.min(np.linalg.norm(p - np.roll(p, 1, axis=1), axis=2), axis=1)
+        hmin = min_edge * h_fn(p.mean(axis=1))
+        small = (ang[rows, k] < min_angle) & (lmin > hmin)
+        bad = small & ~corner
+        stats["left"] = int(np.count_nonzero(ang[rows, k] < min_angle))
+        # at a corner, the chord of a curved interface makes the angle smaller than the geometric
+        # one: split the interface side (its midpoint goes onto the curve) while it is long enough
+        split = set()
+        order_k = np.argsort(seg_keys)
+        for t in np.nonzero((ang[rows, k] < min_angle) & corner)[0]:
+            for w in (v1[t], v2[t]):
+                j = order_k[np.searchsorted(seg_keys[order_k], edge_keys(v[t], w, n))]
+                if pslg.segment_inclusion[j] > 0 and np.linalg.norm(pts[w] - pts[v[t]]) > 4 * hmin[t]:
+                    split.add(int(j))
+        if not bad.any() and not split:
+            break
+        stats["rounds"] += 1
+        order = np.argsort(ang[bad, k[bad]])  # worst first
+        cc = _circumcenters(p[bad][order])
+        rad = np.linalg.norm(cc - p[bad][order][:, 0], axis=1)
+        # encroachment: inside the diametral circle of a segment
+        a, b = pslg.points[pslg.segments[:, 0]], pslg.points[pslg.segments[:, 1]]
+        mid, half = 0.5 * (a + b), 0.5 * np.linalg.norm(b - a, axis=1)
+        tree = cKDTree(mid)
+        hits = tree.query_ball_point(cc, half.max() * (1 + 1e-9))
+        insert = []
+        outside = np.any((cc <= 0.0) | (cc >= box), axis=1)
+        for i, hit in enumerate(hits):
+            hit = [s for s in hit if np.linalg.norm(cc[i] - mid[s]) < half[s]]
+            if hit:
+                split.add(min(hit, key=lambda s: np.linalg.norm(cc[i] - mid[s]) / half[s]))
+            elif outside[i]:
+                box_seg = np.nonzero(pslg.segment_inclusion == BOX_SEGMENT)[0]
+                split.add(int(box_seg[np.argmin(np.linalg.norm(mid[box_seg] - cc[i], axis=1))]))
+            else:
+                insert.append(i)
+        if insert:  # one new node per cluster of nearby circumcentres
+            ins = np.asarray(insert)
+            keep = []
+            taken = cKDTree(cc[ins])
+            used = np.zeros(len(ins), dtype=bool)
+            for j in range(len(ins)):
+                if used[j]:
+                    continue
+                keep.append(ins[j])
+                used[taken.query_ball_point(cc[ins[j]], 0.5 * rad[ins[j]])] = True
+            interior = np.vstack([interior, cc[keep]])
+            stats["inserted"] += len(keep)
+        if split:
+            pslg = split_segments(pslg, np.fromiter(split, dtype=np.int64), project_fn)
+            stats["split"] += len(split)
+        tri = constrained_delaunay(np.vstack([pslg.points, interior]), pslg.segments)
+    return pslg, interior, tri, stats
