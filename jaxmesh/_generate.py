@@ -98,7 +98,14 @@ def _check_grid(grid_shape, dim: int) -> tuple[int, ...]:
 
 def _radius_sampler(radius) -> Callable[[np.random.Generator, int], np.ndarray]:
     if callable(radius):
-        return lambda rng, n: np.asarray(radius(rng, n), dtype=np.float64).reshape(n)
+
+        def call(rng, n):
+            r = np.asarray(radius(rng, n), dtype=np.float64)
+            if r.shape != (n,):
+                raise ValueError(f"radius: expected the callable to return ({n},) radii, got shape {r.shape}.")
+            return r
+
+        return call
     if np.ndim(radius) == 0:
         return lambda rng, n: np.full(n, float(radius))
     if np.shape(radius) == (2,):
@@ -270,19 +277,21 @@ def _relax(box, axes, mats, x, gap, is_sphere, max_iter):
     slack = 1e-3 * axes.min()  # pairs must clear gap + slack (the exact check must pass), pushed to + 2 slack
     target = gap + 2 * slack
     cutoff = 2 * amax.max() + target
+    shifts = image_shifts(d, box) if cutoff > 0.5 * box.min() else np.zeros((1, d))  # as in _Packing
     prev_key, prev_u, top = np.zeros(0, int), np.zeros((0, d)), np.nextafter(box, 0)
     for _ in range(max_iter):
         x = np.minimum(wrap(x, box), top)
         i, j = cKDTree(x, boxsize=box).query_pairs(cutoff, output_type="ndarray").T
-        delta = minimum_image(x[i] - x[j], box)
+        delta = (minimum_image(x[i] - x[j], box)[:, None] + shifts[None]).reshape(-1, d)
+        i, j, im = np.repeat(i, len(shifts)), np.repeat(j, len(shifts)), np.tile(np.arange(len(shifts)), len(i))
         dist = np.maximum(np.linalg.norm(delta, axis=1), 1e-300)
         near = dist < amax[i] + amax[j] + target
-        i, j, delta, dist = i[near], j[near], delta[near], dist[near]
+        i, j, im, delta, dist = i[near], j[near], im[near], delta[near], dist[near]
         u = delta / dist[:, None]
         if is_sphere:
             f = dist - amax[i] - amax[j]
         else:  # warm start from the previous iteration's directions
-            key = i * n + j
+            key = (i * n + j) * len(shifts) + im
             pos = np.minimum(np.searchsorted(prev_key, key), max(len(prev_key) - 1, 0))
             hit = (pos < len(prev_key)) & (prev_key[pos] == key) if len(prev_key) else np.zeros(len(key), bool)
             u[hit] = prev_u[pos[hit]]

@@ -154,6 +154,18 @@ def test_densification_keeps_the_gap(monkeypatch):
     assert _ellipsoid_min_gap(ell, box, 0.01) >= 0.01 - 1e-9
 
 
+def test_large_inclusions_checked_against_every_image():
+    box = (1.0, 1.0)  # radius > L/4: a neighbour can come close through two of its images
+    specs = random_inclusions(box, n=2, radius=0.26, min_gap=0.04, seed=0)
+    assert _sphere_min_gap(specs, box) >= 0.04 - 1e-12
+    ell = random_inclusions(box, n=3, shape="ellipsoid", radius=0.3, aspect=2.0, min_gap=0.04, seed=1,
+                            max_attempts=8)
+    assert _ellipsoid_min_gap(ell, box, 0.04) >= 0.04 - 1e-9
+    dense = random_inclusions(box, n=4, shape="ellipsoid", radius=0.28, aspect=2.0, min_gap=0.04, seed=0,
+                              max_attempts=1)  # through the densification
+    assert 0.04 - 1e-9 <= _ellipsoid_min_gap(dense, box, 0.04) < 0.045
+
+
 def test_gap_certificate_against_sampled_distances():
     rng = np.random.default_rng(5)
     p, gap = 200, 0.02
