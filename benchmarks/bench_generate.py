@@ -48,20 +48,26 @@ def main() -> None:
     args = parser.parse_args()
     box = np.ones(3)
     scale = 1.6 if args.quick else 1.0  # fewer, larger inclusions for a smoke run
-    cases = [
-        ("spheres U(0.040,0.105)", dict(shape="sphere", volume_fraction=0.47,
-                                        radius=lambda rng, n: rng.uniform(0.04 * scale, 0.105 * scale, n))),
-        ("spheres U(0.035,0.100)", dict(shape="sphere", volume_fraction=0.50,
-                                        radius=lambda rng, n: rng.uniform(0.035 * scale, 0.1 * scale, n))),
-        ("ellipsoids U(0.057,0.136) ar 1-2", dict(shape="ellipsoid", volume_fraction=0.47, aspect=(1.0, 2.0),
-                                                  radius=lambda rng, n: rng.uniform(0.057 * scale, 0.136 * scale, n))),
+
+    def uniform(lo, hi):
+        return lambda rng, n: rng.uniform(lo * scale, hi * scale, n)
+
+    cases = [  # radius: largest semi-axis, uniform in [lo, hi]
+        (f"spheres r~U({0.04 * scale:.3f},{0.105 * scale:.3f})",
+         dict(shape="sphere", volume_fraction=0.47, radius=uniform(0.04, 0.105))),
+        (f"spheres r~U({0.035 * scale:.3f},{0.1 * scale:.3f})",
+         dict(shape="sphere", volume_fraction=0.50, radius=uniform(0.035, 0.1))),
+        (f"ellipsoids a~U({0.057 * scale:.3f},{0.136 * scale:.3f}) k 1-2",
+         dict(shape="ellipsoid", volume_fraction=0.47, aspect=(1.0, 2.0), radius=uniform(0.057, 0.136))),
+        (f"ellipsoids a~U({0.057 * scale:.3f},{0.136 * scale:.3f}) k 1-2",
+         dict(shape="ellipsoid", volume_fraction=0.50, aspect=(1.0, 2.0), radius=uniform(0.057, 0.136))),
     ]
     gap = 0.01
     print(f"# jaxmesh bench_generate  {datetime.datetime.now().isoformat(timespec='seconds')}")
     print(f"# machine: {platform.platform()}, {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} CPUs, python {platform.python_version()}, numpy {np.__version__}")
     print(f"# box 1^3, min_gap {gap}, seed 0")
-    print(f"{'case':<34s} {'time [s]':>9s} {'count':>6s} {'fraction':>9s} {'min gap':>9s} {'densified':>9s}")
+    print(f"{'case':<40s} {'time [s]':>9s} {'count':>6s} {'fraction':>9s} {'min gap':>9s} {'densified':>9s}")
     for name, kw in cases:
         calls = []
         relax = gen._relax
@@ -73,7 +79,7 @@ def main() -> None:
         finally:
             gen._relax = relax
         fraction = sum(s.volume for s in specs) / float(np.prod(box))
-        print(f"{name:<34s} {wall:9.2f} {len(specs):6d} {fraction:9.4f} {_min_gap(specs, box):9.5f} "
+        print(f"{name:<40s} {wall:9.2f} {len(specs):6d} {fraction:9.4f} {_min_gap(specs, box):9.5f} "
               f"{'yes' if calls else 'no':>9s}", flush=True)
 
 

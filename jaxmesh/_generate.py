@@ -546,8 +546,8 @@ def sample_levelset(specs: Sequence[InclusionSpec], box, grid_shape) -> np.ndarr
     phi = ub.copy()
     for s in specs:
         rad = s.axes.max() + reach  # beyond this the copy cannot be the nearest
-        for shift in image_shifts(box.shape[0], box):
-            c = s.center + shift
+        for shift in image_shifts(box.shape[0], box):  # copies of the wrapped centre: enough
+            c = wrap(s.center, box) + shift
             lo = np.maximum(np.ceil((c - rad) / h), 0).astype(int)
             hi = np.minimum(np.floor((c + rad) / h), np.asarray(shape) - 1).astype(int)
             if np.any(hi < lo):
@@ -557,10 +557,9 @@ def sample_levelset(specs: Sequence[InclusionSpec], box, grid_shape) -> np.ndarr
             lower = np.linalg.norm(sub - c, axis=-1) - s.axes.max()
             todo = lower < phi[block]
             if todo.any():
-                vals = _spec_sdf_np(s, sub[todo] - shift)
-                view = phi[block]
+                vals = _spec_sdf_np(s, sub[todo] - (c - s.center))
+                view = phi[block]  # a view: writes go to phi
                 view[todo] = np.minimum(view[todo], vals)
-                phi[block] = view
     return phi
 
 

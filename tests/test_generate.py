@@ -226,6 +226,8 @@ def test_sample_levelset_exact_periodic_dn1():
     ref = np.linalg.norm(minimum_image(x - spec.center, np.ones(3)), axis=-1) - 0.2
     np.testing.assert_allclose(phi, ref, atol=1e-14)
     assert phi[15, 8, 8] < 0  # the sphere wraps across x = 0
+    far = InclusionSpec("sphere", spec.center + np.array([2.0, -1.0, 0.0]), spec.axes, np.eye(3))
+    np.testing.assert_allclose(sample_levelset([far], box, shape), phi, atol=1e-14)
     specs = random_inclusions(box, n=6, shape="ellipsoid", radius=(0.15, 0.02), min_gap=0.02, seed=0)
     phi = sample_levelset(specs, box, shape)
     brute = np.full(shape, np.inf)
