@@ -366,3 +366,17 @@ def test_many_inclusions_memory_scales_with_windows():
     near = np.abs(phi) < 2 / n
     np.testing.assert_allclose(ms.dn1[near], phi[near], atol=1e-12)
     assert ms.volume_fraction() == pytest.approx(sum(4 / 3 * np.pi * r**3 for r in radii), rel=0.02)
+
+
+@pytest.mark.parametrize("center", [(0.0, 0.1, 0.5), (1e-17, 0.0, 0.0), (-1e-17, 0.5, 0.5)])
+def test_from_functions_centre_on_the_box_boundary(center):
+    """A centre exactly on (or a rounding error off) a face: its bounds straddle 0 and must not lose it."""
+    import jax.numpy as jnp
+
+    from jaxmesh.geometry._shapes import sphere_sdf
+
+    ms = Microstructure.from_functions([sphere_sdf(jnp.array(center), 0.2)], (1.0, 1.0, 1.0), (24, 24, 24))
+    assert len(ms.inclusions) == 1
+    n_inside = int(np.sum(ms.dn1 < 0))
+    expected = 4.0 / 3.0 * np.pi * 0.2**3 * 24**3
+    assert abs(n_inside - expected) < 0.1 * expected

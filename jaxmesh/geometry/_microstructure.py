@@ -510,7 +510,7 @@ class Microstructure:
         if errors:
             raise ValueError(errors)
         L = np.asarray(box)
-        starts, lengths, bounds = [], [], []
+        starts, lengths, bounds, shifts = [], [], [], []
         for lower, upper, _, _ in found:
             full = upper - lower >= L * (1 - 1e-9)
             shift = np.where(full, 0.0, np.floor((lower + upper) / 2 / L) * L) if periodic else 0.0
@@ -519,16 +519,19 @@ class Microstructure:
             starts.append(s)
             lengths.append(np.minimum(np.ceil(upper / spacing - 1e-9).astype(np.int64) - s + 1, shape))
             bounds.append((lower, upper))
+            shifts.append(np.broadcast_to(shift, L.shape))
         lengths = np.array(lengths)
         r = _reach_steps(reach, lengths, shape, spacing, _CORE_PAD + _SPLINE_PAD["cubic"])
         phis = [_Periodized(f, box) if periodic else f for f in fns]
         dn1, dn2, nearest = _new_dn(shape)
-        for c, (f, phi, s, m) in enumerate(zip(fns, phis, starts, lengths), start=1):
+        for c, (f, phi, s, m, shift) in enumerate(zip(fns, phis, starts, lengths, shifts), start=1):
             fo, fs = comp.reach_frame(s, m, shape, periodic, r)
             axes = [(o + np.arange(w)) * h for o, w, h in zip(fo, fs, spacing)]
             pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(shape))
             big = periodic and np.any(m * spacing > L / 2)  # nearest image by centre may not be nearest
-            vals = evaluate(phi if big else f, pts, name=f"phi_fns[{c - 1}]").reshape(fs)
+            # frame points live in the wrapped frame of the bounds: f itself is defined around lower + shift
+            vals = (evaluate(phi, pts, name=f"phi_fns[{c - 1}]") if big
+                    else evaluate(f, pts + shift, name=f"phi_fns[{c - 1}]")).reshape(fs)
             comp.accumulate(dn1, dn2, nearest, c, comp.frame_indices(fo, fs, shape, periodic), vals)
         labels = np.where(dn1 < 0, nearest, 0)
         reach_len = _finish_dn(dn1, dn2, nearest, labels, spacing, box, periodic, r)
