@@ -342,8 +342,9 @@ def _draw_pool(rng, draw, n, target, box_volume, tol, dim) -> np.ndarray:
         m = int(np.searchsorted(cum, target))  # first index reaching the target
         axes = axes[: m + 1].copy()
         before = cum[m - 1] if m > 0 else 0.0
-        axes[m] *= ((target - before) / (cum[m] - before)) ** (1 / dim)  # the last one hits the target
-        if target - before < 0.5 * tol * box_volume and m > 0:
+        shrink = ((target - before) / (cum[m] - before)) ** (1 / dim)
+        axes[m] *= shrink  # the last one hits the target exactly, unless it becomes a speck
+        if shrink < 0.5 and target - before < 0.5 * tol * box_volume and m > 0:
             axes = axes[:m]
     return axes[np.argsort(-np.prod(axes, axis=1), kind="stable")]
 
@@ -433,8 +434,9 @@ def random_inclusions(
 
     pack = _Packing(box, axes, rots, float(min_gap), shape == "sphere")
     committed, deferred, batch = 0.0, [], 32
+    enough = target - (0.5 * tol if n is not None else 1e-12) * box_volume  # a fraction-only pool sums to target
     for i in range(len(axes)):
-        if committed >= target - 0.5 * tol * box_volume:
+        if committed >= enough:
             break
         committed += vols[i]
         for _ in range(-(-max_attempts // batch)):
