@@ -130,40 +130,26 @@ def _microstructure_info(ms) -> dict:
 
 
 def _cmd_mesh(args: argparse.Namespace) -> int:
+    from ._pipeline import MeshConfig, mesh_rve
     from ._quality import quality_report
-    from ._validate import validate
-    from .io._read import load_input
 
     t0 = time.perf_counter()
-    ms = load_input(args.input, box=_box_arg(args.box), periodic=not args.no_periodic)
-    _progress("read", f"{ms.dim}D, {len(ms.inclusions)} inclusions, grid {tuple(ms.grid_shape)}", t0)
-    if ms.dim != 2:
-        raise MeshingError(
-            "volume",
-            "3D volume meshing (surfaces, box faces, conforming tetrahedralisation) is not available in this "
-            "version; 2D inputs mesh fully. Use `jaxmesh info` to inspect a 3D input.",
-        )
-    from ._mesh2d import mesh_2d
-
-    mesh = mesh_2d(ms, h=args.h, **_size_kwargs(args), seed=args.seed)
-    _progress("mesh", f"{mesh.n_points} points, {mesh.n_cells} triangles", t0)
-    report = validate(mesh, ms)
+    config = MeshConfig(h=args.h, periodic=not args.no_periodic, seed=args.seed, **_size_kwargs(args))
+    mesh = mesh_rve(args.input, config, box=_box_arg(args.box), progress=lambda line: print(line, flush=True))
+    validation = mesh.metadata["validation"]
+    for name, check in validation["checks"].items():
+        print(f"    {name:<14s} {'ok' if check['passed'] else 'FAILED'}  {check['detail']}")
     quality = quality_report(mesh)
-    _progress("validate", "valid" if report.ok else "INVALID", t0)
-    for line in report.summary().splitlines():
-        print("    " + line)
-    print(
-        f"    quality: mean q {quality['q_mean']:.3f}, min q {quality['q_min']:.3f}, "
-        f"q<0.3: {100 * quality['fraction_q_below_0.3']:.2f}%"
-    )
-    mesh.metadata.setdefault("timings", {})["total_s"] = time.perf_counter() - t0
+    worst = (f"min dihedral {quality['min_dihedral_deg']:.1f} deg" if mesh.dim == 3
+             else f"min angle {quality['min_angle_deg']:.1f} deg")
+    print(f"    quality: mean q {quality['q_mean']:.3f}, min q {quality['q_min']:.3f}, "
+          f"q<0.3: {100 * quality['frac_below']:.2f}%, {worst}")
     mesh.write(args.output)
     _progress("write", f"-> {args.output}", t0)
     if args.report:
         _write_json_atomic(
             args.report,
-            {"input": str(args.input), "output": str(args.output), "validation": report.to_dict(),
-             "quality": quality, "metadata": mesh.metadata},
+            {"input": str(args.input), "output": str(args.output), "quality": quality, "metadata": mesh.metadata},
         )
         _progress("report", f"-> {args.report}", t0)
     if args.plot:
@@ -171,7 +157,7 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
 
         plot_mesh(mesh, args.plot, title=f"{Path(args.input).name}: {mesh.n_cells} cells")
         _progress("plot", f"-> {args.plot}", t0)
-    return 0 if report.ok else 1
+    return 0 if validation["ok"] else 1
 
 
 def _size_kwargs(args: argparse.Namespace) -> dict:

@@ -13,3 +13,5 @@ from ._grid import interpolate as interpolate
 from ._grid import interpolate_cubic as interpolate_cubic
 from ._grid import interpolate_linear as interpolate_linear
 from ._grid import make_levelset_grid as make_levelset_grid
+from ._microstructure import Inclusion as Inclusion
+from ._microstructure import Microstructure as Microstructure
