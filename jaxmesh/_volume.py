@@ -22,6 +22,7 @@ from scipy.spatial import Delaunay, cKDTree
 from ._errors import MeshingError
 from ._mesh import Mesh, facet_table
 from ._quality import signed_volumes
+from ._face_flips import delaunay_box_faces, delaunay_interfaces
 from ._surface_mesh import OUTSIDE, SurfaceMesh
 from ._volume_recover import (
     distance_to_surface,
@@ -189,6 +190,9 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
     info = {"rounds": 0, "missing_first": 0, "interior_removed": 0, "surface_splits": 0, "flat_dropped": 0,
             "flat_interior": 0}
     for rnd in range(config.max_recovery_rounds + 1):
+        surface, face_flips = delaunay_box_faces(surface)  # box faces lie on the hull: they must be 2D Delaunay
+        surface, interface_flips = delaunay_interfaces(surface)
+        info["surface_flips"] = info.get("surface_flips", 0) + face_flips + interface_flips
         ns = surface.n_points
         points = np.concatenate([surface.points, interior])
         cells, dinfo = delaunay_tets(points, surface.box, config)
