@@ -1,0 +1,69 @@
+"""The command line, end to end through main(argv)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from jaxmesh._cli import main
+
+
+def test_generate_info_mesh_validate_2d(tmp_path, capsys):
+    rve = tmp_path / "rve2d.npz"
+    assert main(["generate", str(rve), "--dim", "2", "--kind", "sphere", "--n", "4", "--radius", "0.12",
+                 "--radius-std", "0.01", "--min-gap", "0.05", "--grid", "128", "--seed", "3"]) == 0
+    assert main(["info", str(rve)]) == 0
+    assert "inclusions: 4" in capsys.readouterr().out.replace("  ", " ").replace("  ", " ")
+    out, report, plot = tmp_path / "m.vtu", tmp_path / "r.json", tmp_path / "m.png"
+    assert main(["mesh", str(rve), "-o", str(out), "--h", "0.03", "--report", str(report), "--plot", str(plot)]) == 0
+    data = json.loads(report.read_text())
+    assert data["metadata"]["validation"]["ok"] is True
+    assert data["quality"]["n_cells"] > 500
+    assert plot.stat().st_size > 10_000
+    assert main(["validate", str(out), "--geometry", str(rve)]) == 0
+
+
+def test_mesh_3d_sphere(tmp_path):
+    import jax.numpy as jnp
+
+    from jaxmesh import Microstructure, sphere_sdf
+
+    ms = Microstructure.from_functions([sphere_sdf(jnp.array([0.5, 0.5, 0.5]), 0.3)], (1.0, 1.0, 1.0), (24, 24, 24))
+    phi = ms.dn1
+    path = tmp_path / "sphere.npy"
+    np.save(path, phi)
+    out = tmp_path / "sphere.msh"
+    assert main(["mesh", str(path), "-o", str(out), "--h", "0.12", "--report", str(tmp_path / "r.json")]) == 0
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["metadata"]["validation"]["ok"] is True
+    assert report["quality"]["n_cells"] > 100
+    assert main(["validate", str(out), "--geometry", str(path)]) == 0
+
+
+@pytest.mark.parametrize(
+    "array, message",
+    [
+        (np.full((16, 16), np.nan), "NaN"),
+        (np.ones((8,)), "2D or 3D"),
+        (np.ones((16, 16)), "no"),
+    ],
+)
+def test_bad_input_gives_a_clear_error_and_no_file(tmp_path, capsys, array, message):
+    path = tmp_path / "bad.npy"
+    np.save(path, array)
+    out = tmp_path / "never.vtu"
+    assert main(["mesh", str(path), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "error" in err and message.lower() in err.lower()
+    assert "Traceback" not in err
+    assert not out.exists()
+    assert not list(tmp_path.glob("*.vtu*"))
+
+
+def test_absurd_sizes_are_rejected(tmp_path, capsys):
+    rve = tmp_path / "rve.npz"
+    assert main(["generate", str(rve), "--dim", "2", "--n", "2", "--radius", "0.1", "--grid", "64"]) == 0
+    assert main(["mesh", str(rve), "-o", str(tmp_path / "x.vtu"), "--h", "5"]) == 2
+    assert "larger than half" in capsys.readouterr().err
+    assert main(["mesh", str(rve), "-o", str(tmp_path / "x.vtu"), "--iis", "1e-6"]) == 2
+    assert "1/500" in capsys.readouterr().err
