@@ -342,3 +342,33 @@ def assemble_pslg(arcs: list[Arc], crossings: list[Crossing], box, h_fn: Callabl
         periodic_pairs={a: np.asarray(pairs[a], dtype=np.int64) for a in (0, 1)},
         box=(float(L[0]), float(L[1])),
     )
+
+
+def rebuild_box_segments(pslg: PSLG) -> PSLG:
+    """Box segments re-derived from the node order along each edge (box nodes slide in the truss
+    relaxation and may pass one another or a crossing); master and slave edges stay partners."""
+    L = np.asarray(pslg.box, dtype=float)
+    pts = pslg.points
+    seg, inc, partner = [], [], []
+    keep = pslg.segment_inclusion != BOX_SEGMENT
+    for a in (0, 1):
+        b = 1 - a
+        pairs = np.asarray(pslg.periodic_pairs[a])
+        order = np.argsort(pts[pairs[:, 0], b], kind="stable")
+        master, slave = pairs[order, 0], pairs[order, 1]
+        s0 = int(keep.sum()) + len(seg)
+        for i in range(len(master) - 1):
+            seg.extend([(master[i], master[i + 1]), (slave[i], slave[i + 1])])
+            inc.extend([BOX_SEGMENT, BOX_SEGMENT])
+            partner.extend([s0 + 2 * i + 1, s0 + 2 * i])
+    return PSLG(
+        points=pts,
+        segments=np.vstack([pslg.segments[keep], np.asarray(seg, np.int64).reshape(-1, 2)]),
+        segment_inclusion=np.concatenate([pslg.segment_inclusion[keep], np.asarray(inc, np.int64)]),
+        segment_partner=np.concatenate([np.full(int(keep.sum()), -1, np.int64), np.asarray(partner, np.int64)]),
+        node_kind=pslg.node_kind,
+        node_axis=pslg.node_axis,
+        node_inclusion=pslg.node_inclusion,
+        periodic_pairs=pslg.periodic_pairs,
+        box=pslg.box,
+    )

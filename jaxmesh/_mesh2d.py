@@ -23,14 +23,15 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.spatial import cKDTree
 
-from ._contours import Arc, assemble_pslg, cut_loop, extract_loops, resample_polyline, window_grid
+from ._contours import Arc, assemble_pslg, rebuild_box_segments, cut_loop, extract_loops, resample_polyline, window_grid
 from ._errors import MeshingError
 from ._triangulate2d import (
     BOX_EDGE,
@@ -66,7 +67,8 @@ class Mesh2DConfig:
         split_rounds: segment-recovery rounds before the remaining segments are flipped in.
         relax: run the truss relaxation (stage 5).
         slide_box_nodes: box-edge nodes slide along their edge during the relaxation.
-        truss: a ``TrussConfig`` for the relaxation (None: the engine's defaults).
+        truss: a ``TrussConfig`` for the relaxation (None: no alpha ramp, repulsive cut-off, 20
+            retriangulations; see ``_default_truss``).
         flip_rounds: rounds of quality edge flips (stage 6).
         min_angle: Delaunay refinement target (degrees) for what the truss left below it (thin
             gaps between interfaces and box edges); geometric corners sharper than it stay.
@@ -313,15 +315,7 @@ def _interior_nodes(ms, pslg: PSLG, size: _Size, cfg: Mesh2DConfig, rng) -> np.n
         else:
             pts = np.asarray(periodic_octree_nodes(np.asarray(size.field.values), tuple(box)).points, dtype=float)
     if pts is None:
-        h0 = size.h_min
-        dy = h0 * np.sqrt(3.0) / 2.0
-        rows = np.arange(0.0, box[1], dy) + rng.uniform(0, dy)
-        xs = np.arange(0.0, box[0], h0)
-        shift = rng.uniform(0, h0)
-        pts = np.concatenate([np.stack([(xs + shift + 0.5 * h0 * (r % 2)) % box[0], np.full(xs.size, y)], 1)
-                              for r, y in enumerate(rows)])
-        if size.field is not None:  # rejection as in distmesh: keep with probability (h_min / h)^2
-            pts = pts[rng.uniform(size=len(pts)) < (h0 / size.np_fn(pts)) ** 2]
+        pts = _graded_hex(box, size, rng)
     hp = size.np_fn(pts)
     pts = pts + cfg.jitter * hp[:, None] * rng.standard_normal(pts.shape)
     # interfaces and box edges are both segments of the PSLG: one distance test for all
@@ -330,10 +324,51 @@ def _interior_nodes(ms, pslg: PSLG, size: _Size, cfg: Mesh2DConfig, rng) -> np.n
     return pts[keep]
 
 
+def _hex(box, s, rng) -> np.ndarray:
+    """Hexagonal lattice of spacing s over the box, randomly offset."""
+    dy = s * np.sqrt(3.0) / 2.0
+    rows = np.arange(0.0, box[1], dy) + rng.uniform(0, dy)
+    xs = np.arange(0.0, box[0], s) + rng.uniform(0, s)
+    return np.concatenate([np.stack([(xs + 0.5 * s * (r % 2)) % box[0], np.full(xs.size, y)], 1)
+                           for r, y in enumerate(rows[rows < box[1]])])
+
+
+def _graded_hex(box, size: _Size, rng, ratio: float = 1.5) -> np.ndarray:
+    """Hex lattices of spacing h_min * ratio^k, each kept where h falls in [s_k, s_k * ratio);
+    then, of two nodes closer than 0.7 min(h), the coarser goes. Uniform h: one plain lattice."""
+    if size.field is None:
+        return _hex(box, size.h_min, rng)
+    h_max = float(np.max(np.asarray(size.field.values)))
+    parts, s = [], size.h_min
+    while True:
+        p = _hex(box, s, rng)
+        hp = size.np_fn(p)
+        last = s * ratio > h_max
+        parts.append(p[(hp >= s / (1 + 1e-9)) & ((hp < s * ratio) | last)] if s > size.h_min else p[hp < s * ratio])
+        if last:
+            break
+        s *= ratio
+    pts = np.concatenate(parts)
+    hp = size.np_fn(pts)
+    pairs = cKDTree(pts).query_pairs(0.7 * float(hp.max()), output_type="ndarray")
+    d = np.linalg.norm(pts[pairs[:, 0]] - pts[pairs[:, 1]], axis=1)
+    close = pairs[d < 0.7 * np.minimum(hp[pairs[:, 0]], hp[pairs[:, 1]])]
+    drop = np.where(hp[close[:, 0]] > hp[close[:, 1]], close[:, 0], close[:, 1])
+    return np.delete(pts, np.unique(drop), axis=0)
+
+
 # ----------------------------------------------------------------------------- stages 5-6, labels
+def _default_truss():
+    """The interior starts from a lattice near equilibrium, unlike a marching-cubes surface: no
+    alpha ramp, purely repulsive bars (eq. 8, distmesh), more retriangulations than the paper's 10."""
+    from ._truss import TrussConfig
+
+    return TrussConfig(alpha_ramp_iterations=0, repulsive_cutoff=True, max_retriangulations=20)
+
+
 def _relax(points, pslg: PSLG, size: _Size, cfg: Mesh2DConfig):
     """Stage 5: truss relaxation with the constrained segments kept at every retriangulation."""
-    from ._truss import TrussConfig, make_constraints, relax
+    from ._truss import make_constraints, relax
 
     n, box = len(points), np.asarray(pslg.box, dtype=float)
     kind = np.zeros(n, dtype=np.int8)
@@ -346,12 +381,17 @@ def _relax(points, pslg: PSLG, size: _Size, cfg: Mesh2DConfig):
     locked[on_box, axis[on_box]] = True
     pairs = [(int(i), int(j), np.eye(2)[a] * box[a]) for a, pp in pslg.periodic_pairs.items() for i, j in pp]
     constraints = make_constraints(n, 2, fixed=fixed, locked_axes=locked, periodic_pairs=pairs)
-    segments = pslg.segments
+    # box segments are hull edges of any Delaunay triangulation of the box; leaving them out lets
+    # box nodes slide past one another (rebuild_box_segments restores them afterwards)
+    segments = pslg.segments[pslg.segment_inclusion > 0]
 
     def triangulate(p):
         return constrained_delaunay(np.asarray(p, dtype=float), segments)
 
-    res = relax(points, triangulate, size.jax_fn, constraints, config=cfg.truss or TrussConfig())
+    res = relax(points, triangulate, size.jax_fn, constraints, config=cfg.truss or _default_truss(), box=tuple(box))
+    if res.stop_reason == "diverged":  # keep the conforming start rather than a broken mesh
+        return points, {"stop_reason": "diverged (kept the unrelaxed nodes)", "iterations": int(res.n_iterations),
+                        "retriangulations": int(res.n_retriangulations)}
     out = np.array(res.points, dtype=float, copy=True)
     free = kind == 0
     eps = 1e-6 * size.h_min
@@ -440,6 +480,7 @@ def mesh_2d(
     relax_info = {}
     if cfg.relax:
         points, relax_info = _relax(points, pslg, size, cfg)
+        pslg = rebuild_box_segments(replace(pslg, points=points[: pslg.n_points]))
         tri = constrained_delaunay(points, pslg.segments)
     lap("relaxation")
     tri, n_flips = improve_by_flips(points, tri, pslg.segments, max_rounds=cfg.flip_rounds)

@@ -4,7 +4,7 @@ labels, quality flips. NumPy only, tiny inputs."""
 import numpy as np
 import pytest
 
-from jaxmesh._contours import assemble_pslg
+from jaxmesh._contours import assemble_pslg, rebuild_box_segments
 from jaxmesh._errors import MeshingError
 from jaxmesh._quality import cell_quality, signed_volumes
 from jaxmesh._triangulate2d import (
@@ -15,12 +15,15 @@ from jaxmesh._triangulate2d import (
     conforming_delaunay,
     constrained_delaunay,
     delaunay_triangles,
+    distance_to_segments,
     edge_keys,
     flood_fill,
     improve_by_flips,
+    interface_sides,
     interior_edges,
     missing_segments,
     recover_segments_by_flips,
+    refine_bad_triangles,
     split_segments,
 )
 
@@ -172,11 +175,19 @@ def test_flood_fill_and_labels():
     noisy = votes.copy()
     flip = rng.uniform(size=len(votes)) < 0.2
     noisy[flip] = 7 - noisy[flip]
-    lab = component_labels(comp, noisy)
+    lab, dissent = component_labels(comp, noisy)
     assert np.array_equal(lab[comp], votes)
-    # weights decide a tie-free minority: heavy votes win
+    assert 0.1 < dissent.max() < 0.3  # ~20% wrong non-zero votes in the matrix component
+    # weights decide: light wrong votes barely count
     w = np.where(flip, 1e-3, 1.0)
-    assert np.array_equal(component_labels(comp, noisy, w)[comp], votes)
+    lab, dissent = component_labels(comp, noisy, w)
+    assert np.array_equal(lab[comp], votes) and dissent.max() < 1e-2
+    # a component without votes is matrix
+    assert component_labels(np.array([0]), np.array([5]), n_components=2)[0].tolist() == [5, 0]
+    # interface sides: every triangle along the circle, voted from its own side
+    t, inc = interface_sides(tri, out.segments, out.segment_inclusion, len(pts))
+    assert np.all(inc == 1) and len(t) == 2 * np.count_nonzero(out.segment_inclusion == 1)
+    assert set(comp[t].tolist()) == {0, 1}
     # without constraints everything is one component
     assert flood_fill(tri, np.zeros((0, 2), np.int64), len(pts))[0] == 1
 
@@ -218,3 +229,59 @@ def test_edge_keys_and_errors():
     tri = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [0, 1, 4]])  # edge (0, 1) in three triangles
     with pytest.raises(MeshingError, match="more than two"):
         interior_edges(tri, 5)
+
+
+def test_distance_to_segments_matches_brute_force():
+    rng = np.random.default_rng(5)
+    nodes = rng.uniform(0, 1, (20, 2))
+    segs = np.stack([np.arange(0, 20, 2), np.arange(1, 20, 2)], 1)
+    q = rng.uniform(0, 1, (300, 2))
+    a, b = nodes[segs[:, 0]], nodes[segs[:, 1]]
+    t = np.clip(np.einsum("mkd,kd->mk", q[:, None] - a, b - a) / np.sum((b - a) ** 2, 1), 0, 1)
+    exact = np.linalg.norm(q[:, None] - (a + t[..., None] * (b - a)), axis=2).min(1)
+    approx = distance_to_segments(q, nodes, segs, 0.01)
+    assert np.all(approx >= exact - 1e-12) and np.all(approx <= exact + 0.005)
+
+
+def test_refine_bad_triangles_thin_gap_to_box_edge():
+    """A coarse polygon 0.01 above the box edge y = 0: the thin matrix strip gets refined until its
+    triangles reach the angle target; box splits are mirrored, periodic pairs stay translates."""
+    pslg = _circle_pslg(radius=0.3, n_nodes=24, center=(0.5, 0.31))
+    project = _radial_projection(center=(0.5, 0.31))
+    out, inner, tri, _ = conforming_delaunay(pslg, np.zeros((0, 2)), project)
+    pts = np.vstack([out.points, inner])
+    from jaxmesh._triangulate2d import triangle_angles
+
+    assert triangle_angles(pts, tri).min() < 10
+    ref, inner2, tri2, stats = refine_bad_triangles(out, inner, tri, project, lambda p: np.full(len(p), 0.1),
+                                                    min_angle=20.5, min_edge=0.01)
+    pts2 = np.vstack([ref.points, inner2])
+    assert stats["split"] > 0 and stats["left"] == 0
+    assert triangle_angles(pts2, tri2).min() >= 20.5
+    _check_triangulation(pts2, tri2, 1.0)
+    assert not missing_segments(tri2, ref.segments, len(pts2)).any()
+    for a, pairs in ref.periodic_pairs.items():
+        assert np.array_equal(pts2[pairs[:, 1]], pts2[pairs[:, 0]] + np.eye(2)[a])
+    # new interface nodes on the circle
+    iface = ref.node_kind == INTERFACE
+    assert np.allclose(np.linalg.norm(ref.points[iface] - (0.5, 0.31), axis=1), 0.3, atol=1e-14)
+
+
+def test_rebuild_box_segments_after_sliding():
+    pslg = assemble_pslg([], [], (1.0, 1.0), lambda p: np.full(len(p), 0.2))
+    pts = pslg.points.copy()
+    # swap the order of two master nodes on x = 0 (and their partners), as a sliding node would
+    pairs = pslg.periodic_pairs[0]
+    inner = pairs[(pts[pairs[:, 0], 1] > 0) & (pts[pairs[:, 0], 1] < 1)]
+    (m1, s1), (m2, s2) = inner[0], inner[1]
+    for i, j in ((m1, m2), (s1, s2)):
+        pts[i, 1], pts[j, 1] = pts[j, 1], pts[i, 1]
+    from dataclasses import replace
+
+    out = rebuild_box_segments(replace(pslg, points=pts))
+    tri = constrained_delaunay(pts, out.segments)
+    _check_triangulation(pts, tri, 1.0)
+    assert not missing_segments(tri, out.segments, len(pts)).any()
+    seg = out.segments
+    for s, p in enumerate(out.segment_partner):
+        assert np.allclose(np.abs(pts[seg[p]] - pts[seg[s]]).sum(axis=1).max(), 1.0)
