@@ -18,7 +18,7 @@ Error vs the exact Euclidean formula (one-sided: h >= exact, every path is at le
 the straight segment): a sub-cell detour at the seed ring plus the stencil anisotropy along the
 way; for the defaults measured <= 0.3 g spacing + 4 % of g |x - x_s| (radius 1: ~1.5 g spacing +
 11 %), mean ~0.15 g spacing (tests/test_sizing.py checks it against brute force).
-Cost O(grid * stencil * (log2 n + 2)) plus one argmin pass; 128^3 in ~10 s on 2 CPU cores.
+Cost O(grid * stencil * (log2 n + 2)) plus one argmin pass (benchmarks/bench_sizing_octree.py).
 """
 
 from __future__ import annotations
@@ -72,42 +72,32 @@ class SizeParams(eqx.Module):
     h_min: float | Array | None = None
 
     def __check_init__(self):
-        vals = {}
+        v = {}
         for name in _PARAMS:
-            v = getattr(self, name)
-            if not _is_concrete(v):
-                continue
-            arr = np.asarray(v, dtype=float)
-            if arr.shape != () or not np.isfinite(arr) or arr <= 0:
-                raise ValueError(
-                    f"SizeParams.{name} expected a positive finite scalar, got {v!r}. "
-                    f"Hint: e.g. SizeParams(iis=0.05, nb_el=3, curv_alpha=0.5, grad=0.3)."
-                )
-            vals[name] = float(arr)
-        if "grad" in vals and vals["grad"] > 10.0:
-            raise ValueError(
-                f"SizeParams.grad expected a gradient limit in (0, 10], got {vals['grad']}. "
-                "Hint: 0.2-0.5 gives smooth size transitions."
-            )
-        iis = vals.get("iis")
-        if iis is not None and vals.get("h_max") is not None and vals["h_max"] < iis:
-            raise ValueError(
-                f"SizeParams.h_max expected >= iis = {iis}, got {vals['h_max']}. "
-                "Hint: h_max caps sizes far from the interfaces, iis the interface size."
-            )
-        if iis is not None and vals.get("h_min") is not None and vals["h_min"] > iis:
-            raise ValueError(
-                f"SizeParams.h_min expected <= iis = {iis}, got {vals['h_min']}. "
-                "Hint: h_min is a floor for small gaps and sharp features."
-            )
+            x = getattr(self, name)
+            if _is_concrete(x):
+                arr = np.asarray(x, dtype=float)
+                if arr.shape != () or not np.isfinite(arr) or arr <= 0:
+                    raise ValueError(f"SizeParams.{name} expected a positive finite scalar, got {x!r}. "
+                                     "Hint: e.g. SizeParams(iis=0.05, nb_el=3, curv_alpha=0.5, grad=0.3).")
+                v[name] = float(arr)
+        if v.get("grad", 0.0) > 10.0:
+            raise ValueError(f"SizeParams.grad expected a gradient limit in (0, 10], got {v['grad']}. "
+                             "Hint: 0.2-0.5 gives smooth size transitions.")
+        if "iis" in v and v.get("h_max", np.inf) < v["iis"]:
+            raise ValueError(f"SizeParams.h_max expected >= iis = {v['iis']}, got {v['h_max']}. "
+                             "Hint: h_max caps sizes far from the interfaces, iis the interface size.")
+        if "iis" in v and v.get("h_min", 0.0) > v["iis"]:
+            raise ValueError(f"SizeParams.h_min expected <= iis = {v['iis']}, got {v['h_min']}. "
+                             "Hint: h_min is a floor for small gaps and sharp features.")
 
     def resolved(self) -> tuple[Array, Array, Array, Array, Array, Array]:
         """(iis, nb_el, curv_alpha, grad, h_max, h_min) as JAX scalars, defaults filled in."""
-        iis = jnp.asarray(self.iis, dtype=float)
-        h_max = 4.0 * iis if self.h_max is None else jnp.asarray(self.h_max, dtype=float)
-        h_min = iis / 100.0 if self.h_min is None else jnp.asarray(self.h_min, dtype=float)
-        as_arr = lambda v: jnp.asarray(v, dtype=float)  # noqa: E731
-        return iis, as_arr(self.nb_el), as_arr(self.curv_alpha), as_arr(self.grad), h_max, h_min
+        arr = functools.partial(jnp.asarray, dtype=float)
+        iis = arr(self.iis)
+        h_max = 4.0 * iis if self.h_max is None else arr(self.h_max)
+        h_min = iis / 100.0 if self.h_min is None else arr(self.h_min)
+        return iis, arr(self.nb_el), arr(self.curv_alpha), arr(self.grad), h_max, h_min
 
 
 def check_params_against_box(params: SizeParams, box: Sequence[float]) -> None:
@@ -116,15 +106,11 @@ def check_params_against_box(params: SizeParams, box: Sequence[float]) -> None:
         return
     iis, lo, hi = float(params.iis), min(box), max(box)
     if iis > lo:
-        raise ValueError(
-            f"SizeParams.iis expected <= the smallest box length {lo}, got {iis}. "
-            "Hint: iis is an element size on the interfaces, a fraction of the cell."
-        )
+        raise ValueError(f"SizeParams.iis expected <= the smallest box length {lo}, got {iis}. "
+                         "Hint: iis is an element size on the interfaces, a fraction of the cell.")
     if iis < 1e-4 * hi:
-        raise ValueError(
-            f"SizeParams.iis expected >= 1e-4 * box = {1e-4 * hi:g}, got {iis:g}. "
-            "Hint: that would ask for > 10^8 elements per axis; check the units of iis and box."
-        )
+        raise ValueError(f"SizeParams.iis expected >= 1e-4 * box = {1e-4 * hi:g}, got {iis:g}. "
+                         "Hint: that asks for > 10^8 elements per axis; check the units of iis and box.")
 
 
 # ----------------------------------------------------------------------------- source points
@@ -137,59 +123,47 @@ class SourceEdges(NamedTuple):
 
 
 def interface_edges(values: ArrayLike, periodic: bool = True) -> SourceEdges:
-    """Edges (a, a + e_axis) of the grid whose end nodes differ in sign (phi < 0 vs phi >= 0).
+    """Edges (a, a + e_axis) whose end nodes differ in sign (phi < 0 vs phi >= 0).
 
     Args:
         values: (nx, ny[, nz]) concrete level-set samples (NumPy or JAX, not traced).
         periodic: include the wrap-around edges (n-1 -> 0).
 
     Returns:
-        :class:`SourceEdges`, each array (s,); the sign pattern is fixed, so crossings computed
-        from it are differentiable in the values (:func:`interface_sources`).
+        :class:`SourceEdges`, each (s,): a fixed sign pattern, so that crossings computed from it
+        are differentiable in the values (:func:`interface_sources`).
     """
-    phi = np.asarray(values)
-    inside = phi < 0
-    flat = np.arange(phi.size).reshape(phi.shape)
-    a_all, b_all, ax_all = [], [], []
-    for axis in range(phi.ndim):
+    inside = np.asarray(values) < 0
+    flat = np.arange(inside.size).reshape(inside.shape)
+    found = []
+    for axis in range(inside.ndim):
         cross = inside != np.roll(inside, -1, axis=axis)
         if not periodic:
             cross[(slice(None),) * axis + (-1,)] = False  # no edge leaves the last slice
-        nb = np.roll(flat, -1, axis=axis)
-        a_all.append(flat[cross])
-        b_all.append(nb[cross])
-        ax_all.append(np.full(int(cross.sum()), axis, dtype=np.int64))
-    return SourceEdges(*(np.concatenate(x).astype(np.int64) for x in (a_all, b_all, ax_all)))
+        found.append((flat[cross], np.roll(flat, -1, axis=axis)[cross], np.full(int(cross.sum()), axis)))
+    return SourceEdges(*(np.concatenate(x).astype(np.int64) for x in zip(*found)))
 
 
 def _check_grid(values, box) -> tuple[float, ...]:
     shape = np.shape(values)
     if len(shape) not in (2, 3) or min(shape) < 2:
-        raise ValueError(
-            f"expected a 2D or 3D level-set grid, got shape {shape}. Hint: values[i, j(, k)] = phi."
-        )
+        raise ValueError(f"expected a 2D or 3D level-set grid, got shape {shape}. "
+                         "Hint: values[i, j(, k)] = phi at node (i, j(, k)).")
     box = tuple(float(b) for b in (np.ones(len(shape)) if box is None else box))
     if len(box) != len(shape) or not all(np.isfinite(b) and b > 0 for b in box):
-        raise ValueError(
-            f"expected {len(shape)} positive box lengths for grid shape {shape}, got {box}. "
-            "Hint: one length per grid axis."
-        )
+        raise ValueError(f"expected {len(shape)} positive box lengths for grid shape {shape}, got {box}. "
+                         "Hint: one length per grid axis.")
     return box
 
 
-def interface_sources(
-    field,
-    box: Sequence[float] | None = None,
-    *,
-    labels: ArrayLike | None = None,
-    periodic: bool | None = None,
-    edges: SourceEdges | None = None,
-) -> tuple[Float[Array, "s d"], np.ndarray]:
+def interface_sources(field, box: Sequence[float] | None = None, *, labels: ArrayLike | None = None,
+                      periodic: bool | None = None, edges: SourceEdges | None = None
+                      ) -> tuple[Float[Array, "s d"], np.ndarray]:
     """Source points on the interfaces at grid precision: the crossings of phi = 0 on grid edges.
 
-    The crossing on edge (a, b) sits at x_a + t h e_axis with t = phi_a / (phi_a - phi_b)
-    (linear interpolation), wrapped into [0, L); differentiable w.r.t. the values for a fixed sign
-    pattern (pass ``edges`` from :func:`interface_edges` to call it on traced values).
+    The crossing on edge (a, b) sits at x_a + t h e_axis, t = phi_a / (phi_a - phi_b) (linear
+    interpolation), wrapped into [0, L); differentiable in the values for a fixed sign pattern
+    (pass ``edges`` from :func:`interface_edges` to call it on traced values).
 
     Args:
         field: a Microstructure (uses dn1, nearest_id, box, periodic) or (nx, ny[, nz]) values.
@@ -199,7 +173,7 @@ def interface_sources(
         edges: precomputed sign pattern.
 
     Returns:
-        points (s, d) JAX array and ids (s,) NumPy int: the id at the edge's inside node.
+        points (s, d) JAX array and ids (s,) NumPy int: the label at the edge's inside node.
 
     Example:
         >>> pts, ids = interface_sources(ms)  # ms: Microstructure
@@ -213,64 +187,47 @@ def interface_sources(
     box = _check_grid(values, box)
     if edges is None:
         if isinstance(values, jax.core.Tracer):
-            raise ValueError(
-                "interface_sources expected concrete values to find the sign pattern, got a tracer. "
-                "Hint: compute edges = interface_edges(values) outside the transformation."
-            )
+            raise ValueError("interface_sources expected concrete values to find the sign pattern, got a "
+                             "tracer. Hint: compute edges = interface_edges(values) outside the transform.")
         if not np.all(np.isfinite(np.asarray(values))):
-            raise ValueError("interface_sources expected finite level-set values, got NaN/inf.")
+            raise ValueError("interface_sources expected finite level-set values, got NaN/inf. "
+                             "Hint: fill undefined samples with a large positive distance.")
         edges = interface_edges(values, periodic)
     shape = np.shape(values)
     phi = jnp.asarray(values).reshape(-1)
     pa, pb = phi[edges.a], phi[edges.b]
-    t = pa / (pa - pb)
     spacing = np.asarray(box) / np.asarray(shape)
     base = np.stack(np.unravel_index(edges.a, shape), axis=-1) * spacing
     step = np.eye(len(shape))[edges.axis] * spacing
-    points = wrap(jnp.asarray(base) + t[:, None] * jnp.asarray(step), jnp.asarray(box))
+    points = wrap(jnp.asarray(base) + (pa / (pa - pb))[:, None] * jnp.asarray(step), jnp.asarray(box))
     if labels is None:
-        ids = np.ones(edges.a.size, dtype=np.int64)
-    else:
-        lab = np.asarray(labels).reshape(-1)
-        inside_a = np.asarray(values).reshape(-1)[edges.a] < 0
-        ids = lab[np.where(inside_a, edges.a, edges.b)].astype(np.int64)
-    return points, ids
+        return points, np.ones(edges.a.size, dtype=np.int64)
+    inside_a = np.asarray(values).reshape(-1)[edges.a] < 0
+    return points, np.asarray(labels).reshape(-1)[np.where(inside_a, edges.a, edges.b)].astype(np.int64)
 
 
-# ----------------------------------------------------------------------------- source sizes
-def source_sizes(
-    points: Float[ArrayLike, "s d"],
-    ids: Int[ArrayLike, " s"],
-    dn2_at_points: Float[ArrayLike, " s"],
-    kappa_at_points: Float[ArrayLike, " s"],
-    iis,
-    nb_el,
-    curv_alpha,
-    h_min=None,
-) -> Float[Array, " s"]:
+def source_sizes(points: Float[ArrayLike, "s d"], ids: Int[ArrayLike, " s"],
+                 dn2_at_points: Float[ArrayLike, " s"], kappa_at_points: Float[ArrayLike, " s"],
+                 iis, nb_el, curv_alpha, h_min=None) -> Float[Array, " s"]:
     """h0 = max(h_min, min(iis, DN2 / nb_el, alpha / |kappa|)) at the source points (eq. 12-19).
 
     Args:
-        points: (s, d) source points (only their count is used: sizes are pointwise).
-        ids: (s,) inclusion ids of the sources (checked for length).
+        points: (s, d) source points and ids: (s,) their inclusion ids (sizes are pointwise:
+            both only fix s and are checked).
         dn2_at_points: (s,) distance to the second nearest inclusion at each source.
-        kappa_at_points: (s,) max principal curvature magnitude (of the source's own inclusion).
-        iis, nb_el, curv_alpha: scalars (JAX scalars to differentiate).
-        h_min: optional floor.
+        kappa_at_points: (s,) max |principal curvature| of the source's own inclusion.
+        iis, nb_el, curv_alpha: scalars (JAX scalars to differentiate); h_min: optional floor.
 
     Returns:
         (s,) source sizes h0.
     """
     s = np.shape(points)[0]
-    for name, arr in (("ids", ids), ("dn2_at_points", dn2_at_points), ("kappa", kappa_at_points)):
+    for name, arr in (("ids", ids), ("dn2_at_points", dn2_at_points), ("kappa_at_points", kappa_at_points)):
         if np.shape(arr) != (s,):
-            raise ValueError(
-                f"source_sizes expected {name} of shape ({s},) (one per source point), "
-                f"got {np.shape(arr)}."
-            )
-    h_nar = jnp.asarray(dn2_at_points) / nb_el
+            raise ValueError(f"source_sizes expected {name} of shape ({s},) (one per source point), "
+                             f"got {np.shape(arr)}. Hint: evaluate it at the source points.")
     kappa = jnp.maximum(jnp.abs(jnp.asarray(kappa_at_points)), 1e-300)  # flat: h_curv huge
-    h0 = jnp.minimum(jnp.minimum(iis, h_nar), curv_alpha / kappa)
+    h0 = jnp.minimum(jnp.minimum(iis, jnp.asarray(dn2_at_points) / nb_el), curv_alpha / kappa)
     return h0 if h_min is None else jnp.maximum(h0, h_min)
 
 
@@ -280,43 +237,39 @@ def _grid_coordinates(grid_shape, box, dtype) -> Array:
     return jnp.stack(jnp.meshgrid(*axes, indexing="ij"), axis=-1)
 
 
-def _delta(coords, src_at, box, periodic):
-    delta = coords - src_at
-    return minimum_image(delta, jnp.asarray(box, dtype=coords.dtype)) if periodic else delta
+def _delta(x, src, box, periodic):
+    return minimum_image(x - src, jnp.asarray(box, dtype=x.dtype)) if periodic else x - src
 
 
-def _shift(a: Array, shift, axis: int, periodic: bool, fill) -> Array:
-    """a[i - shift] along axis; ``fill`` where that falls off a non-periodic grid."""
+def _shift(a: Array, shift, axis: int, periodic: bool) -> Array:
+    """a[i - shift] along axis; inf where that falls off a non-periodic grid."""
     out = jnp.roll(a, shift, axis=axis)
     if not periodic:
         i = jax.lax.broadcasted_iota(jnp.int32, a.shape, axis) - shift
-        out = jnp.where((i >= 0) & (i < a.shape[axis]), out, fill)
+        out = jnp.where((i >= 0) & (i < a.shape[axis]), out, jnp.inf)
     return out
 
 
-def _stencil(d: int, radius: int) -> np.ndarray:
-    """Primitive integer offsets o with max |o_a| <= radius ((2, 0) is two (1, 0) steps)."""
-    rng = range(-radius, radius + 1)
-    return np.array([o for o in itertools.product(rng, repeat=d) if math.gcd(*o) == 1])
+def _stencil(d: int, radius: int, spacing) -> tuple[Array, np.ndarray]:
+    """Primitive integer offsets o, max |o_a| <= radius ((2, 0) is two (1, 0) steps), lengths |o|."""
+    offs = np.array([o for o in itertools.product(range(-radius, radius + 1), repeat=d) if math.gcd(*o) == 1])
+    return jnp.asarray(offs, dtype=jnp.int32), np.sqrt(np.sum((offs * np.asarray(spacing)) ** 2, axis=1))
 
 
 def _seed(h0, src, g, coords, box, periodic, reach) -> tuple[Array, Array]:
-    """Exact cone values h0_s + g |x - x_s| on the (2 reach)^d nodes around each source.
-
-    Returns the best seed value per node (inf: none) and its source index (-1: none).
-    """
+    """Exact cone values h0_s + g |x - x_s| on the (2 reach)^d nodes around each source:
+    the best value per node (inf: none) and its source index (-1: none)."""
     shape, d = coords.shape[:-1], coords.shape[-1]
     spacing = jnp.asarray([L / n for L, n in zip(box, shape)], dtype=coords.dtype)
     base = jnp.floor(src / spacing).astype(jnp.int32)
     n_arr = jnp.asarray(shape, dtype=jnp.int32)
     strides = jnp.asarray([math.prod(shape[a + 1 :]) for a in range(d)], dtype=jnp.int32)
-    corners = jnp.asarray(list(itertools.product(range(1 - reach, 1 + reach), repeat=d)))
+    corners = jnp.asarray(list(itertools.product(range(1 - reach, 1 + reach), repeat=d)), dtype=jnp.int32)
     flat_coords = coords.reshape(-1, d)
 
-    def cone_at(j):
+    def cone_at(j):  # one corner offset at a time: memory O(sources), not O(sources * corners)
         node = base + corners[j]
-        node = node % n_arr if periodic else jnp.clip(node, 0, n_arr - 1)
-        flat = node @ strides
+        flat = (node % n_arr if periodic else jnp.clip(node, 0, n_arr - 1)) @ strides
         delta = _delta(flat_coords[flat], src, box, periodic)
         return flat, h0 + g * jnp.sqrt(jnp.sum(delta * delta, axis=-1))  # inf: padded sources
 
@@ -335,36 +288,27 @@ def _seed(h0, src, g, coords, box, periodic, reach) -> tuple[Array, Array]:
     return val.reshape(shape), idx.reshape(shape)
 
 
-def _step_lengths(offsets: np.ndarray, spacing) -> np.ndarray:
-    return np.sqrt(np.sum((offsets * np.asarray(spacing)) ** 2, axis=1))
-
-
-def _relax(seed_val, g, spacing, offsets, periodic, tol=1e-12) -> Array:
+def _relax(seed_val, steps, offs, periodic, tol=1e-12) -> Array:
     """Shortest-path values val_i = min(seed_i, min_o val_{i-o} + g |o|) on the grid graph.
 
-    First one sweep per hop length k = 2^m .. 2 (m: the largest with 2^m <= n/2) with the
-    straight multi-hop moves k o (k steps of o: a path of the same graph, so the fixed point is
-    unchanged, but far nodes are reached in log2(n) sweeps), then unit sweeps until nothing
-    changes (typically two).
+    First one sweep per hop length k = 2^m .. 2 (2^m <= n/2) with the straight moves k o (k steps
+    of o: paths of the same graph, so the fixed point is unchanged, but far nodes are reached in
+    log2 n sweeps), then unit sweeps until nothing changes (typically two).
     """
-    shape, d = seed_val.shape, seed_val.ndim
-    offs = jnp.asarray(offsets, dtype=jnp.int32)
-    steps = g * jnp.asarray(_step_lengths(offsets, spacing), dtype=seed_val.dtype)
+    d = seed_val.ndim
 
     def sweep(val, k):
         def visit(j, val):  # Gauss-Seidel over the stencil: each offset sees the previous ones
             nb = val
             for a in range(d):
-                nb = _shift(nb, offs[j, a] * k, a, periodic, jnp.inf)
+                nb = _shift(nb, offs[j, a] * k, a, periodic)
             return jnp.minimum(val, nb + k * steps[j])
 
         return jax.lax.fori_loop(0, offs.shape[0], visit, val)
 
-    hops = [2**m for m in range(int(math.log2(max(max(shape) // 2, 1))), 0, -1)]
-    val = seed_val
-    if hops:
-        hops_arr = jnp.asarray(hops, dtype=jnp.int32)
-        val = jax.lax.fori_loop(0, len(hops), lambda i, v: sweep(v, hops_arr[i]), val)
+    top = int(math.log2(max(max(seed_val.shape) // 2, 1)))
+    hops = jnp.asarray([2**m for m in range(top, 0, -1)], dtype=jnp.int32)
+    val = jax.lax.fori_loop(0, hops.size, lambda i, v: sweep(v, hops[i]), seed_val)
 
     def body(c):
         new = sweep(c[0], 1)
@@ -373,33 +317,25 @@ def _relax(seed_val, g, spacing, offsets, periodic, tol=1e-12) -> Array:
     return jax.lax.while_loop(lambda c: c[1], body, (val, jnp.bool_(True)))[0]
 
 
-def _path_to_seed(val, seed_val, g, spacing, offsets, periodic) -> tuple[Array, Array]:
-    """For every node the seed node its shortest path starts from and the stencil length of it.
-
-    Predecessor = the best stencil neighbour (or itself if its seed is best); the predecessor
-    forest is collapsed by pointer jumping (log2 of the longest path rounds).
-    """
+def _path_to_seed(val, seed_val, steps, lengths, offs, periodic) -> tuple[Array, Array]:
+    """Per node: the flat index of the seed node its shortest path starts from, and the stencil
+    length of that path. Predecessor = best stencil neighbour (itself if its own seed is best);
+    the predecessor forest is collapsed by pointer jumping (log2 of the longest path rounds)."""
     shape, d = val.shape, val.ndim
-    offs = jnp.asarray(offsets, dtype=jnp.int32)
-    lengths = jnp.asarray(_step_lengths(offsets, spacing), dtype=val.dtype)
 
     def visit(j, c):
-        best, arg = c
         nb = val
         for a in range(d):
-            nb = _shift(nb, offs[j, a], a, periodic, jnp.inf)
-        cand = nb + g * lengths[j]
-        better = cand < best
-        return jnp.where(better, cand, best), jnp.where(better, j, arg)
+            nb = _shift(nb, offs[j, a], a, periodic)
+        better = nb + steps[j] < c[0]
+        return jnp.where(better, nb + steps[j], c[0]), jnp.where(better, j, c[1])
 
-    init = (seed_val, jnp.full(shape, -1, dtype=jnp.int32))
-    _, arg = jax.lax.fori_loop(0, offs.shape[0], visit, init)
+    _, arg = jax.lax.fori_loop(0, offs.shape[0], visit, (seed_val, jnp.full(shape, -1, jnp.int32)))
     index = jnp.stack([jax.lax.broadcasted_iota(jnp.int32, shape, a) for a in range(d)], axis=-1)
-    n_arr = jnp.asarray(shape, dtype=jnp.int32)
-    strides = jnp.asarray([math.prod(shape[a + 1 :]) for a in range(d)], dtype=jnp.int32)
-    pred = (index - jnp.where(arg[..., None] >= 0, offs[jnp.maximum(arg, 0)], 0)) % n_arr
-    ptr = (pred @ strides).reshape(-1)
-    length = jnp.where(arg >= 0, lengths[jnp.maximum(arg, 0)], 0.0).reshape(-1)
+    has = arg[..., None] >= 0
+    pred = (index - jnp.where(has, offs[jnp.maximum(arg, 0)], 0)) % jnp.asarray(shape, dtype=jnp.int32)
+    ptr = (pred @ jnp.asarray([math.prod(shape[a + 1 :]) for a in range(d)], dtype=jnp.int32)).reshape(-1)
+    length = jnp.where(arg >= 0, jnp.asarray(lengths, val.dtype)[jnp.maximum(arg, 0)], 0.0).reshape(-1)
 
     def jump(c):
         ptr, length, _ = c
@@ -412,84 +348,68 @@ def _path_to_seed(val, seed_val, g, spacing, offsets, periodic) -> tuple[Array, 
 @functools.partial(jax.jit, static_argnames=("grid_shape", "box", "periodic", "radius", "reach"))
 def _limit_gradient(h0, sources, g, h_max, grid_shape, box, periodic, radius, reach):
     coords = _grid_coordinates(grid_shape, box, sources.dtype)
-    spacing = [L / n for L, n in zip(box, grid_shape)]
-    offsets = _stencil(len(grid_shape), radius)
+    offs, lengths = _stencil(len(grid_shape), radius, [L / n for L, n in zip(box, grid_shape)])
     # the path search runs on constants; gradients flow through the final evaluation only
     h0_c, src_c, g_c = (jax.lax.stop_gradient(x) for x in (h0, sources, g))
+    steps = g_c * jnp.asarray(lengths, dtype=sources.dtype)
     seed_val, seed_idx = _seed(h0_c, src_c, g_c, coords, box, periodic, reach)
-    val = _relax(seed_val, g_c, spacing, offsets, periodic)
-    root, length = _path_to_seed(val, seed_val, g_c, spacing, offsets, periodic)
+    val = _relax(seed_val, steps, offs, periodic)
+    root, length = _path_to_seed(val, seed_val, steps, lengths, offs, periodic)
     idx = seed_idx.reshape(-1)[root]
     safe = jnp.maximum(idx, 0)
     delta = _delta(coords.reshape(-1, coords.shape[-1])[root], sources[safe], box, periodic)
     r2 = jnp.sum(delta * delta, axis=-1)
-    pos = r2 > 0
-    dist = jnp.where(pos, jnp.sqrt(jnp.where(pos, r2, 1.0)), 0.0)  # safe sqrt: finite grads at 0
-    h = jnp.where(idx >= 0, h0[safe] + g * (dist + length), h_max)
-    return jnp.minimum(h, h_max)
+    dist = jnp.where(r2 > 0, jnp.sqrt(jnp.where(r2 > 0, r2, 1.0)), 0.0)  # safe sqrt: finite grads at 0
+    return jnp.minimum(jnp.where(idx >= 0, h0[safe] + g * (dist + length), h_max), h_max)
 
 
-def limit_gradient(
-    h0: Float[ArrayLike, " s"],
-    sources: Float[ArrayLike, "s d"],
-    box: Sequence[float],
-    grid_shape: Sequence[int],
-    g,
-    h_max,
-    *,
-    periodic: bool = True,
-    radius: int = 2,
-    reach: int = 2,
-) -> Float[Array, "..."]:
+def limit_gradient(h0: Float[ArrayLike, " s"], sources: Float[ArrayLike, "s d"], box: Sequence[float],
+                   grid_shape: Sequence[int], g, h_max, *, periodic: bool = True, radius: int = 2,
+                   reach: int = 2) -> Float[Array, "..."]:
     """h(x) = min(h_max, min_s h0_s + g |x - x_s|) on the node-centred grid (eq. 20).
 
-    Distances are periodic minimum-image distances when ``periodic``. See the module docstring
-    for the algorithm and its (one-sided, sub-grid-step) error.
+    Distances are minimum-image distances when ``periodic``; see the module docstring for the
+    algorithm and its (one-sided) error. Sources are padded to a power-of-two capacity.
 
     Args:
-        h0: (s,) source sizes.
-        sources: (s, d) source points.
-        box: (d,) cell lengths.
-        grid_shape: (nx, ny[, nz]); node i sits at i * L / n.
+        h0: (s,) source sizes; sources: (s, d) source points.
+        box: (d,) cell lengths; grid_shape: (nx, ny[, nz]), node i at i * L / n.
         g: gradient limit; h_max: cap (JAX scalars to differentiate).
         periodic: periodic distances and propagation.
+        radius: stencil radius (1: 3^d - 1 offsets, cheaper, ~3x the error); reach: seed ring in cells.
 
     Returns:
         (nx, ny[, nz]) sizes h.
     """
-    grid_shape = tuple(int(n) for n in grid_shape)
-    box = tuple(float(b) for b in box)
+    grid_shape, box = tuple(int(n) for n in grid_shape), tuple(float(b) for b in box)
     d = len(grid_shape)
     if d not in (2, 3) or len(box) != d or min(grid_shape) < 2:
-        raise ValueError(
-            f"limit_gradient expected a 2D/3D grid_shape and a box of the same length, got "
-            f"{grid_shape} and {box}. Hint: pass microstructure.grid_shape and .box."
-        )
+        raise ValueError(f"limit_gradient expected a 2D/3D grid_shape and a box of the same length, got "
+                         f"{grid_shape} and {box}. Hint: pass microstructure.grid_shape and .box.")
+    if radius not in (1, 2, 3) or reach not in (1, 2, 3):
+        raise ValueError(f"limit_gradient expected radius and reach in 1..3, got {radius!r}, {reach!r}. "
+                         "Hint: the defaults (2, 2) balance accuracy and cost.")
     sources = jnp.asarray(sources, dtype=float)
     h0 = jnp.asarray(h0, dtype=sources.dtype)
     if sources.ndim != 2 or sources.shape[1] != d or h0.shape != (sources.shape[0],):
-        raise ValueError(
-            f"limit_gradient expected sources (s, {d}) and h0 (s,), got {sources.shape} and "
-            f"{h0.shape}. Hint: one size per source point."
-        )
+        raise ValueError(f"limit_gradient expected sources (s, {d}) and h0 (s,), got {sources.shape} and "
+                         f"{h0.shape}. Hint: one size per source point.")
     if _is_concrete(h0) and h0.size and not bool(jnp.all(h0 > 0)):
-        raise ValueError("limit_gradient expected positive source sizes h0, got h0 <= 0 / NaN.")
+        raise ValueError("limit_gradient expected positive source sizes h0, got h0 <= 0 or NaN. "
+                         "Hint: set SizeParams.h_min.")
     s = sources.shape[0]
     cap = 1 << max(s - 1, 0).bit_length()  # capacity bucket: fewer recompilations
     h0 = jnp.concatenate([h0, jnp.full(cap - s, jnp.inf, dtype=h0.dtype)])
     sources = jnp.concatenate([sources, jnp.zeros((cap - s, d), dtype=sources.dtype)])
-    g = jnp.asarray(g, dtype=sources.dtype)
-    h_max = jnp.asarray(h_max, dtype=sources.dtype)
-    if radius not in (1, 2, 3):
-        raise ValueError(f"limit_gradient expected stencil radius 1, 2 or 3, got {radius!r}.")
+    g, h_max = jnp.asarray(g, dtype=sources.dtype), jnp.asarray(h_max, dtype=sources.dtype)
     return _limit_gradient(h0, sources, g, h_max, grid_shape, box, bool(periodic), int(radius), int(reach))
 
 
 def predicted_element_count(h: Float[ArrayLike, "..."], box: Sequence[float]) -> Array:
     """Expected number of elements, c_d * integral of h^-d over the box (differentiable).
 
-    c_d = 1 / volume of the regular simplex of unit edge (4 / sqrt(3) in 2D, 6 sqrt(2) in 3D):
-    an estimate, real meshes of nearly regular simplices come within a small factor.
+    c_d = 1 / volume of the regular simplex of unit edge (4 / sqrt(3) in 2D, 6 sqrt(2) in 3D): an
+    estimate; meshes of nearly regular simplices come within a small factor.
 
     Args:
         h: (nx, ny[, nz]) size grid (node-centred periodic: the mean is the integral / volume).
@@ -499,10 +419,10 @@ def predicted_element_count(h: Float[ArrayLike, "..."], box: Sequence[float]) ->
         scalar count.
     """
     h = jnp.asarray(h)
-    d = h.ndim
-    if d not in _SIMPLEX_DENSITY or len(box) != d:
-        raise ValueError(f"expected a 2D/3D size grid and {d} box lengths, got {h.shape}, {box}.")
-    return _SIMPLEX_DENSITY[d] * math.prod(box) * jnp.mean(h ** (-d))
+    if h.ndim not in _SIMPLEX_DENSITY or len(box) != h.ndim:
+        raise ValueError(f"predicted_element_count expected a 2D/3D size grid and one box length per axis, "
+                         f"got shape {h.shape} and box {box}. Hint: pass SizeField.values and .box.")
+    return _SIMPLEX_DENSITY[h.ndim] * math.prod(box) * jnp.mean(h ** (-h.ndim))
 
 
 # ----------------------------------------------------------------------------- size field
@@ -510,10 +430,8 @@ class SizeField(eqx.Module):
     """h(x) sampled on the level-set grid, interpolated like the level sets (periodic linear).
 
     Attributes:
-        values: (nx, ny[, nz]) sizes at the grid nodes.
-        box: (d,) cell lengths (static).
-        source_points: (s, d) interface source points, or None.
-        source_h0: (s,) source sizes, or None.
+        values: (nx, ny[, nz]) sizes at the grid nodes; box: (d,) cell lengths (static).
+        source_points: (s, d) interface source points, or None; source_h0: (s,) their sizes.
 
     Example:
         >>> h = size_function(ms, SizeParams(iis=0.05))
@@ -548,29 +466,12 @@ class SizeSources(NamedTuple):
     kappa: Array  # (s,) max |principal curvature| of each source's own inclusion
 
 
-def size_sources(microstructure) -> SizeSources:
-    """Sources, their DN2 and their curvature (each inclusion's own phi_fn) for a Microstructure."""
-    ms = microstructure
-    points, ids = interface_sources(ms)
-    # DN2 may be inf (a single inclusion): clamp to a length no periodic distance exceeds
-    dn2_grid = np.clip(np.asarray(ms.dn2, dtype=float), 0.0, float(np.linalg.norm(ms.box)))
-    dn2 = interpolate_linear(jnp.asarray(dn2_grid), ms.box, points)
-    kappa = np.zeros(ids.size)
-    pts_np = np.asarray(points)
-    for inc in ms.inclusions:
-        sel = np.nonzero(ids == inc.id)[0]
-        if sel.size:
-            kappa[sel] = _curvature(inc.phi_fn, pts_np[sel])
-    return SizeSources(points, ids, dn2, jnp.asarray(kappa))
-
-
 def _curvature(phi_fn: Callable, points: np.ndarray) -> np.ndarray:
-    """max_abs_curvature of one inclusion at its sources, (m,) NumPy.
+    """max_abs_curvature of one inclusion at (m, d) points, padded to a power-of-two bucket.
 
-    Points are padded to a power-of-two bucket. A PyTree phi_fn (Partial, eqx.Module: grid-based
-    inclusions) is traced, so one compilation serves all inclusions of a bucket; an opaque closure
-    (analytic inclusions) would compile once per inclusion (~1 s), so it runs op by op instead
-    (~0.1 s per inclusion once the primitives of the bucket are compiled).
+    A PyTree phi_fn (Partial, eqx.Module: grid-based inclusions) is traced, so one compilation
+    serves all inclusions of a bucket; an opaque closure (analytic inclusions) would compile once
+    per inclusion (~1 s), so it runs op by op instead (~0.1 s once a bucket's primitives exist).
     """
     m = points.shape[0]
     size = max(64, 1 << (m - 1).bit_length())
@@ -581,9 +482,23 @@ def _curvature(phi_fn: Callable, points: np.ndarray) -> np.ndarray:
         return np.asarray(max_abs_curvature(phi_fn, padded))[:m]
 
 
-def size_function(
-    microstructure, params: SizeParams | None = None, *, sources: SizeSources | None = None
-) -> SizeField:
+def size_sources(microstructure) -> SizeSources:
+    """Sources, their DN2 and their curvature (each inclusion's own phi_fn) for a Microstructure."""
+    ms = microstructure
+    points, ids = interface_sources(ms)
+    # DN2 may be inf (a single inclusion): clamp to a length no periodic distance exceeds
+    dn2_grid = np.clip(np.asarray(ms.dn2, dtype=float), 0.0, float(np.linalg.norm(ms.box)))
+    dn2 = interpolate_linear(jnp.asarray(dn2_grid), ms.box, points)
+    kappa, pts = np.zeros(ids.size), np.asarray(points)
+    for inc in ms.inclusions:
+        sel = np.nonzero(ids == inc.id)[0]
+        if sel.size:
+            kappa[sel] = _curvature(inc.phi_fn, pts[sel])
+    return SizeSources(points, ids, dn2, jnp.asarray(kappa))
+
+
+def size_function(microstructure, params: SizeParams | None = None, *,
+                  sources: SizeSources | None = None) -> SizeField:
     """The size function h(x) of a microstructure on its level-set grid (paper section 4.2).
 
     Args:
@@ -604,8 +519,6 @@ def size_function(
     src = size_sources(microstructure) if sources is None else sources
     iis, nb_el, alpha, g, h_max, h_min = params.resolved()
     h0 = source_sizes(src.points, src.ids, src.dn2, src.kappa, iis, nb_el, alpha, h_min)
-    h = limit_gradient(
-        h0, src.points, microstructure.box, microstructure.grid_shape, g, h_max,
-        periodic=microstructure.periodic,
-    )
+    h = limit_gradient(h0, src.points, microstructure.box, microstructure.grid_shape, g, h_max,
+                       periodic=microstructure.periodic)
     return SizeField(h, microstructure.box, src.points, h0)
