@@ -252,3 +252,25 @@ def test_bad_inputs():
     ms3 = Microstructure.from_functions([sphere_sdf(jnp.array([0.5, 0.5, 0.5]), 0.3)], (1.0, 1.0, 1.0), (16, 16, 16))
     with pytest.raises(ValueError, match="expected a 2D microstructure"):
         mesh_2d(ms3, h=0.05)
+
+
+@pytest.mark.parametrize("interior", ["hex", "quadtree"])
+def test_size_function_graded(interior):
+    if interior == "quadtree":
+        pytest.importorskip("jaxmesh._octree")
+    from jaxmesh._sizing import SizeParams, size_function
+
+    circles = [((0.3, 0.3), 0.15), ((0.62, 0.35), 0.15), ((0.1, 0.85), 0.12), ((0.7, 0.8), 0.06)]
+    ms = Microstructure.from_functions([sphere_sdf(jnp.asarray(c), r) for c, r in circles], BOX, (48, 48),
+                                       volumes=[np.pi * r * r for _, r in circles])
+    field = size_function(ms, SizeParams(iis=0.04, nb_el=2, curv_alpha=0.3))  # ~21 chords on r = 0.06
+    mesh = mesh_2d(ms, field, config=Mesh2DConfig(interior=interior))
+    _check_mesh(mesh, ms, float(np.min(field.values)), area_rtol=0.03)
+    # the mesh follows the field: edges in the narrow gap are much shorter than far from inclusions
+    e = np.concatenate([mesh.cells[:, [0, 1]], mesh.cells[:, [1, 2]], mesh.cells[:, [2, 0]]])
+    mid = mesh.points[e].mean(axis=1)
+    length = np.linalg.norm(np.diff(mesh.points[e], axis=1)[:, 0], axis=1)
+    h_mid = np.asarray(field(jnp.asarray(mid)))
+    assert np.median(length / h_mid) == pytest.approx(1.0, abs=0.2)
+    # the same through the size-function keywords (h=None)
+    assert mesh_2d(ms, iis=0.04, nb_el=2, curv_alpha=0.3, config=Mesh2DConfig(interior=interior)).metadata["h"] == "field"
