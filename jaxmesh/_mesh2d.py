@@ -12,11 +12,18 @@ Stages (timed in ``mesh.metadata["timings"]``):
    encroaching interior nodes removed, remaining segments split, the rest flipped in);
 5. truss relaxation (:mod:`._truss`) of the interior nodes, box-edge nodes sliding on their edge
    with periodic partners coupled, corners, crossings and interface nodes fixed (the interface
-   curves were already equidistributed in stage 1); every retriangulation keeps the segments;
-6. edge flips of non-constrained edges that raise the worse quality of their two triangles.
+   curves were already equidistributed in stage 1); every retriangulation keeps the interface
+   segments (box segments are hull edges; they are rebuilt from the node order afterwards);
+6. edge flips of non-constrained edges that raise the worse quality of their two triangles, then
+   Delaunay refinement of what is still below ``min_angle`` (thin gaps between an interface and a
+   box edge, shallow crossings), splits mirrored on the box and projected on the interfaces.
 
-Labels: flood fill across non-constrained edges, each component takes the majority label of the
-field at its triangle centroids (weighted by |phi|).
+Labels: flood fill across constrained edges; each component is voted on by the triangles along its
+interface segments (inside or outside that segment's own inclusion, its level set at the centroid).
+
+Level sets reach NumPy through one jitted Newton kernel that takes the inclusion's level set as a
+jaxpr plus constants, so that all inclusions of one kind (e.g. every analytic ellipse) share one
+compilation.
 """
 
 from __future__ import annotations
@@ -31,13 +38,21 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ._contours import Arc, assemble_pslg, rebuild_box_segments, cut_loop, extract_loops, resample_polyline, window_grid
-from ._errors import MeshingError
-from ._triangulate2d import (
+from ._contours import (
     BOX_EDGE,
     FIXED,
     INTERFACE,
     PSLG,
+    Arc,
+    assemble_pslg,
+    cut_loop,
+    extract_loops,
+    rebuild_box_segments,
+    resample_polyline,
+    window_grid,
+)
+from ._errors import MeshingError
+from ._triangulate2d import (
     component_labels,
     distance_to_segments,
     conforming_delaunay,

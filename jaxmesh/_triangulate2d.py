@@ -1,6 +1,6 @@
 """Constrained 2D triangulation (NumPy/SciPy only, never imports jax).
 
-The 2D mesher hands this module a planar straight-line graph (:class:`PSLG`: the interface
+The 2D mesher hands this module a planar straight-line graph (``_contours.PSLG``: the interface
 polylines and the box edges) plus free interior nodes, and gets back a triangulation in
 which every constrained segment is an edge:
 
@@ -24,7 +24,6 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -32,45 +31,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, cKDTree
 
 from ._errors import MeshingError
+from ._contours import BOX_SEGMENT, PSLG, split_segments
 from ._quality import cell_quality
-
-# node kinds of a PSLG
-INTERIOR, INTERFACE, BOX_EDGE, FIXED = 0, 1, 2, 3
-BOX_SEGMENT = -1  # segment_inclusion of box-edge segments
-
-
-@dataclass
-class PSLG:
-    """Constrained nodes and segments of a periodic 2D box.
-
-    Attributes:
-        points: (n, 2) node coordinates in [0, Lx] x [0, Ly].
-        segments: (s, 2) node ids of the constrained segments.
-        segment_inclusion: (s,) inclusion id of interface segments, ``BOX_SEGMENT`` (-1) for box edges.
-        segment_partner: (s,) id of the translated box segment on the opposite edge (-1 if none);
-            the partner lists its nodes in the same order.
-        node_kind: (n,) INTERFACE (on a level set), BOX_EDGE (slides along its edge) or FIXED
-            (box corner or interface/box crossing).
-        node_axis: (n,) normal axis of the box line a BOX_EDGE/FIXED-crossing node sits on (-1 otherwise).
-        node_inclusion: (n,) inclusion id of interface and crossing nodes (0 otherwise).
-        periodic_pairs: axis -> (k, 2) (node on x_axis = 0, its translate on x_axis = L).
-        box: (Lx, Ly).
-    """
-
-    points: np.ndarray
-    segments: np.ndarray
-    segment_inclusion: np.ndarray
-    segment_partner: np.ndarray
-    node_kind: np.ndarray
-    node_axis: np.ndarray
-    node_inclusion: np.ndarray
-    periodic_pairs: dict[int, np.ndarray] = field(default_factory=dict)
-    box: tuple[float, float] = (1.0, 1.0)
-
-    @property
-    def n_points(self) -> int:
-        return len(self.points)
-
 
 # ----------------------------------------------------------------------------- basic helpers
 def _orient(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -140,96 +102,6 @@ def missing_segments(triangles: np.ndarray, segments: np.ndarray, n: int) -> np.
         return np.zeros(0, dtype=bool)
     _, _, _, _, keys = _half_edges(triangles, n)
     return ~np.isin(edge_keys(segments[:, 0], segments[:, 1], n), keys)
-
-
-# ----------------------------------------------------------------------------- splitting
-def split_segments(pslg: PSLG, which: np.ndarray, project_fn: Callable) -> PSLG:
-    """Split the flagged segments at their midpoints.
-
-    Interface midpoints go through ``project_fn(points (k, 2), inclusion_ids (k,)) -> (k, 2)``
-    (back onto the level set). A box segment is split on its master edge (x_axis = 0) and the
-    same point, translated, splits its partner, and the new pair joins ``periodic_pairs``.
-
-    Args:
-        pslg: the graph. which: (s,) bool or index array of segments to split.
-        project_fn: the level-set projection callback.
-    Returns:
-        A new PSLG (old node ids unchanged, new nodes appended).
-    """
-    which = np.unique(np.nonzero(which)[0] if np.asarray(which).dtype == bool else np.asarray(which, np.int64))
-    box = np.asarray(pslg.box, dtype=float)
-    seg = pslg.segments.copy()
-    inc = pslg.segment_inclusion.copy()
-    partner = pslg.segment_partner.copy()
-    new_pts, kind, axis, ninc = [], [], [], []
-    new_seg, new_inc, new_partner = [], [], []
-    pairs = {a: [p for p in np.asarray(pslg.periodic_pairs.get(a, np.zeros((0, 2), np.int64)))] for a in (0, 1)}
-    n0 = pslg.n_points
-
-    def add_node(p, k, ax, i):
-        new_pts.append(p)
-        kind.append(k)
-        axis.append(ax)
-        ninc.append(i)
-        return n0 + len(new_pts) - 1
-
-    # interface segments: batch projection
-    iface = which[inc[which] != BOX_SEGMENT]
-    if iface.size:
-        a, b = seg[iface, 0], seg[iface, 1]
-        mid = 0.5 * (pslg.points[a] + pslg.points[b])
-        mid = np.asarray(project_fn(mid, inc[iface]), dtype=float)
-        for s, p in zip(iface, mid):
-            m = add_node(p, INTERFACE, -1, inc[s])
-            new_seg.append((m, seg[s, 1]))
-            new_inc.append(inc[s])
-            new_partner.append(-1)
-            seg[s, 1] = m
-    # box segments: split each master once (normal coordinate exactly 0), mirror onto its partner
-    s0 = len(seg)
-    done = set()
-    for s in which[inc[which] == BOX_SEGMENT]:
-        t = partner[s]
-        a, b = pslg.segments[s]  # original ids: seg[] may already hold a split half
-        ax = int(np.argmin(np.abs(pslg.points[a] - pslg.points[b])))  # axis-aligned: normal coords equal
-        master, slave = (s, t) if pslg.points[a][ax] == 0.0 or t < 0 else (t, s)
-        if master in done:
-            continue
-        done.add(master)
-        a, b = seg[master]
-        pm = 0.5 * (pslg.points[a] + pslg.points[b])
-        pm[ax] = pslg.points[a][ax]
-        m = add_node(pm, BOX_EDGE, ax, 0)
-        i_m = s0 + len(new_seg)
-        new_seg.append((m, b))
-        new_inc.append(BOX_SEGMENT)
-        seg[master, 1] = m
-        if slave < 0:
-            new_partner.append(-1)
-            continue
-        ps = pm.copy()
-        ps[ax] = box[ax]
-        ms = add_node(ps, BOX_EDGE, ax, 0)
-        i_s = s0 + len(new_seg)
-        new_seg.append((ms, seg[slave, 1]))
-        new_inc.append(BOX_SEGMENT)
-        seg[slave, 1] = ms
-        new_partner.extend([i_s, i_m])
-        pairs[ax].append(np.array([m, ms]))
-    new_seg = np.asarray(new_seg, dtype=np.int64).reshape(-1, 2)
-    new_partner = np.asarray(new_partner, dtype=np.int64)
-    pts = np.vstack([pslg.points, np.asarray(new_pts, dtype=float).reshape(-1, 2)])
-    return replace(
-        pslg,
-        points=pts,
-        segments=np.vstack([seg, new_seg]),
-        segment_inclusion=np.concatenate([inc, np.asarray(new_inc, np.int64)]),
-        segment_partner=np.concatenate([partner, new_partner]),
-        node_kind=np.concatenate([pslg.node_kind, np.asarray(kind, pslg.node_kind.dtype)]),
-        node_axis=np.concatenate([pslg.node_axis, np.asarray(axis, pslg.node_axis.dtype)]),
-        node_inclusion=np.concatenate([pslg.node_inclusion, np.asarray(ninc, pslg.node_inclusion.dtype)]),
-        periodic_pairs={a: np.asarray(pairs[a], np.int64).reshape(-1, 2) for a in (0, 1)},
-    )
 
 
 def conforming_delaunay(

@@ -4,13 +4,10 @@ labels, quality flips. NumPy only, tiny inputs."""
 import numpy as np
 import pytest
 
-from jaxmesh._contours import assemble_pslg, rebuild_box_segments
+from jaxmesh._contours import BOX_SEGMENT, INTERFACE, PSLG, assemble_pslg, rebuild_box_segments, split_segments
 from jaxmesh._errors import MeshingError
 from jaxmesh._quality import cell_quality, signed_volumes
 from jaxmesh._triangulate2d import (
-    BOX_SEGMENT,
-    INTERFACE,
-    PSLG,
     component_labels,
     conforming_delaunay,
     constrained_delaunay,
@@ -24,7 +21,6 @@ from jaxmesh._triangulate2d import (
     missing_segments,
     recover_segments_by_flips,
     refine_bad_triangles,
-    split_segments,
 )
 
 
