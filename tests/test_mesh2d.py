@@ -249,6 +249,9 @@ def test_bad_inputs():
         mesh_2d(ms, h=0.05, config={"relax": False})
     with pytest.raises(ValueError, match="2D"):
         mesh_2d("not a microstructure", h=0.05)
+    flat = Microstructure.from_functions([sphere_sdf(jnp.array([0.5, 0.5]), 0.2)], BOX, (32, 32), periodic=False)
+    with pytest.raises(ValueError, match="expected a periodic microstructure"):
+        mesh_2d(flat, h=0.05)
     ms3 = Microstructure.from_functions([sphere_sdf(jnp.array([0.5, 0.5, 0.5]), 0.3)], (1.0, 1.0, 1.0), (16, 16, 16))
     with pytest.raises(ValueError, match="expected a 2D microstructure"):
         mesh_2d(ms3, h=0.05)
