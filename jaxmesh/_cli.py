@@ -255,6 +255,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # interface nodes on the level set to 1e-12, not 1e-7
     try:
         return int(args.func(args) or 0)
     except (ValueError, MeshingError, FileNotFoundError) as exc:
