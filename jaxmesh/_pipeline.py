@@ -32,6 +32,8 @@ class MeshConfig:
         periodic: periodic mesh (node pairs on opposite faces).
         seed: seed of every random choice (node jitter, thinning).
         validate: run the validator at the end and store its report in the metadata.
+        interior: interior nodes of the volume stage: "bcc" (graded body-centred cubic lattices on h,
+            the better quality measured so far, see benchmarks/README.md) or "octree" (paper 4.3).
     """
 
     iis: float = 0.05
@@ -43,6 +45,7 @@ class MeshConfig:
     periodic: bool = True
     seed: int = 0
     validate: bool = True
+    interior: str = "bcc"
 
     def __post_init__(self):
         for name in ("iis", "nb_el", "curv_alpha", "grad", "h_max", "h"):
@@ -54,6 +57,8 @@ class MeshConfig:
                     f"MeshConfig.{name}: expected a positive finite number, got {value!r}; "
                     "hint: sizes are in box units, e.g. iis=0.05 for a unit box"
                 )
+        if self.interior not in ("bcc", "octree"):
+            raise ValueError(f"MeshConfig.interior: expected 'bcc' or 'octree', got {self.interior!r}")
         if self.h_max is not None and self.h_max < self.iis:
             raise ValueError(f"MeshConfig.h_max: expected >= iis = {self.iis}, got {self.h_max}")
 
@@ -194,11 +199,11 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
 
 
 def _interior_nodes(ms, h_np, config: MeshConfig):
-    """Octree nodes on h (paper 4.3), or None to let the volume stage fill with BCC lattices."""
-    try:
-        from ._octree import periodic_octree_nodes
-    except ImportError:
+    """Octree nodes on h (paper 4.3), or None to let the volume stage fill with graded BCC lattices."""
+    if config.interior == "bcc":
         return None
+    from ._octree import periodic_octree_nodes
+
     coords = ms.coordinates().reshape(-1, ms.dim)
     h_grid = h_np(coords).reshape(tuple(ms.grid_shape))
     nodes = periodic_octree_nodes(h_grid, ms.box, interface_phi=np.asarray(ms.dn1))
