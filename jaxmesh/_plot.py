@@ -29,10 +29,13 @@ def _colors(ids: np.ndarray, color_by: str) -> np.ndarray:
 
     if color_by not in ("inclusion", "phase"):
         raise ValueError(f"color_by must be 'inclusion' or 'phase', got {color_by!r}")
-    tab = colormaps["tab20"]
+    # tab20 without its two greys (14, 15): an inclusion must never look like the matrix
+    palette = np.asarray(colormaps["tab20"].colors)[[i for i in range(20) if i not in (14, 15)]]
     rgba = np.tile(np.asarray(_MATRIX_RGBA), (len(ids), 1))
     inc = ids > 0
-    rgba[inc] = tab(((ids[inc] - 1) % 20) if color_by == "inclusion" else np.full(inc.sum(), 0))
+    index = (ids[inc] - 1) % len(palette) if color_by == "inclusion" else np.zeros(inc.sum(), int)
+    rgba[inc, :3] = palette[index]
+    rgba[inc, 3] = 1.0
     return rgba
 
 
