@@ -30,4 +30,3 @@ from ._relax import relax_fixed_topology as relax_fixed_topology
 from ._topology import bucket_capacity as bucket_capacity
 from ._topology import edges_from_simplices as edges_from_simplices
 from ._topology import pad_rows as pad_rows
-from ._topology import simplex_quality as simplex_quality

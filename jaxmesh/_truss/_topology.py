@@ -14,7 +14,6 @@ __all__ = [
     "edges_from_simplices",
     "bucket_capacity",
     "pad_rows",
-    "simplex_quality",
 ]
 
 
@@ -107,46 +106,3 @@ def pad_rows(rows: np.ndarray, capacity: int, *, fill: int = 0, dtype=np.int32):
     mask = np.zeros(capacity, dtype=bool)
     mask[:m] = True
     return out, mask
-
-
-def simplex_quality(points: np.ndarray, simplices: np.ndarray) -> np.ndarray:
-    """Normalised shape quality of triangles (2 r_in / r_circ) or tets (3 r_in / r_circ).
-
-    1 for the regular simplex, 0 for a degenerate one. Triangles may live in 2D or 3D.
-
-    Args:
-        points: (n, d) coordinates.
-        simplices: (m, 3) triangles or (m, 4) tetrahedra.
-
-    Returns:
-        (m,) float64 qualities.
-    """
-    p = np.asarray(points, dtype=np.float64)
-    s = np.asarray(simplices)
-    if s.ndim != 2 or s.shape[1] not in (3, 4):
-        raise ValueError(f"simplices: expected shape (m, 3) or (m, 4), got {s.shape}.")
-    if s.shape[1] == 3:
-        a = np.linalg.norm(p[s[:, 1]] - p[s[:, 2]], axis=1)
-        b = np.linalg.norm(p[s[:, 2]] - p[s[:, 0]], axis=1)
-        c = np.linalg.norm(p[s[:, 0]] - p[s[:, 1]], axis=1)
-        num = (b + c - a) * (c + a - b) * (a + b - c)
-        den = a * b * c
-        return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
-    if p.shape[1] != 3:
-        raise ValueError(f"points: tetrahedra need 3D points, got dimension {p.shape[1]}.")
-    x0 = p[s[:, 0]]
-    e = np.stack([p[s[:, k]] - x0 for k in (1, 2, 3)], axis=1)  # (m, 3, 3) rows = edge vectors
-    vol6 = np.abs(np.linalg.det(e))
-    faces = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))
-    area = sum(
-        0.5 * np.linalg.norm(np.cross(p[s[:, j]] - p[s[:, i]], p[s[:, k]] - p[s[:, i]]), axis=1)
-        for i, j, k in faces
-    )
-    r_in = 0.5 * vol6 / np.where(area > 0, area, 1.0)  # 3 V / A with V = vol6 / 6
-    sq = np.sum(e * e, axis=2)
-    # circumcentre c (relative to x0) solves 2 e c = |e|^2; |c| is the circumradius
-    ok = vol6 > 1e-300
-    c = np.zeros_like(x0)
-    c[ok] = np.linalg.solve(2.0 * e[ok], sq[ok][..., None])[..., 0]
-    r_circ = np.linalg.norm(c, axis=1)
-    return np.where(ok & (r_circ > 0), 3.0 * r_in / np.where(r_circ > 0, r_circ, 1.0), 0.0)
