@@ -84,13 +84,20 @@ def interpolate_grid(values: np.ndarray, box: Sequence[float], points: np.ndarra
     values = np.asarray(values, dtype=float)
     shape, d = np.array(values.shape), values.ndim
     t = wrap(np.asarray(points, dtype=float), np.asarray(box, dtype=float)) * (shape / np.asarray(box))
-    base = np.floor(t).astype(np.int64)
+    base = np.floor(t)
     frac = t - base
+    base = base.astype(np.int64)
+    flat = values.reshape(-1)
+    strides = [int(np.prod(shape[a + 1 :])) for a in range(d)]
+    lo = [(base[:, a] % shape[a]) * strides[a] for a in range(d)]  # per-axis flat offsets
+    hi = [((base[:, a] + 1) % shape[a]) * strides[a] for a in range(d)]
     out = np.zeros(len(t))
     for corner in itertools.product((0, 1), repeat=d):
-        c = np.array(corner)
-        w = np.prod(np.where(c == 1, frac, 1.0 - frac), axis=1)
-        out += w * values[tuple(((base + c) % shape).T)]
+        index, weight = 0, 1.0
+        for a, c in enumerate(corner):
+            index = index + (hi[a] if c else lo[a])
+            weight = weight * (frac[:, a] if c else 1.0 - frac[:, a])
+        out += weight * flat[index]
     return out
 
 
@@ -157,8 +164,9 @@ class _Leaves:
                     nb %= n
                 else:
                     nb = nb[np.all((nb >= 0) & (nb < n), axis=1)]
-                nb = np.unique(nb // 2, axis=0)  # the parent-level region next to the leaf
-                for coarse in range(level - 1):  # a leaf at coarse < level - 1 covering it must split
+                # the parent-level regions next to the leaves (integer keys: np.unique(axis=0) is slow)
+                nb = self.decode(level - 1, np.unique(self.encode(level - 1, nb // 2)))
+                for coarse in range(level - 1):  # a leaf at coarse < level - 1 covering one must split
                     keys = np.unique(self.encode(coarse, nb // 2 ** (level - 1 - coarse)))
                     hit = keys[self.contains(coarse, keys)]
                     if hit.size:
@@ -220,8 +228,12 @@ def periodic_octree_nodes(h_grid, box: Sequence[float], *, max_depth: int | None
     active = np.stack(np.meshgrid(*[np.arange(n) for n in roots], indexing="ij"), -1).reshape(-1, d)
     for level in range(max_depth + 1):
         size = root_size / 2**level
-        samples = ((active[:, None, :] + offsets[None]) * size).reshape(-1, d)
-        h = h_fn(samples).reshape(len(active), len(offsets)).min(axis=1)
+        # samples on the half-cell lattice: mid-edges are shared by 2^(d-1) cells, evaluate each once
+        half = (2 * active[:, None, :] + (2 * offsets[None]).astype(np.int64)).reshape(-1, d)
+        keys, inverse = np.unique(np.ravel_multi_index(tuple(half.T), tuple(2 * leaves.dims(level) + 1)),
+                                  return_inverse=True)
+        uniq = np.stack(np.unravel_index(keys, tuple(2 * leaves.dims(level) + 1)), axis=-1) * (size / 2)
+        h = h_fn(uniq)[inverse.reshape(-1)].reshape(len(active), len(offsets)).min(axis=1)
         split = (h < density * size.max()) if level < max_depth else np.zeros(len(active), bool)
         leaves.add(level, active[~split])
         kids = 2 * active[split][:, None, :] + np.array(list(itertools.product((0, 1), repeat=d)))[None]
