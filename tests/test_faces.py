@@ -116,3 +116,30 @@ def test_bad_input():
         mesh_surfaces(ms, 0.05)
     with pytest.raises(ValueError, match="Microstructure"):
         mesh_surfaces(object(), 0.05)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1])
+def test_random_ellipsoids(seed):
+    from jaxmesh._generate import microstructure_from_specs, random_inclusions
+
+    specs = random_inclusions((1.0, 1.0, 1.0), n=40, volume_fraction=0.35, shape="ellipsoid", radius=(0.14, 0.02),
+                              min_gap=1.0 / 24, seed=seed)  # fmt: skip
+    ms = microstructure_from_specs(specs, (1.0, 1.0, 1.0), (48, 48, 48))
+    h = 0.03
+    m = mesh_surfaces(ms, h)  # raises MeshingError on a self-intersection
+    for region in range(len(ms.inclusions) + 1):
+        sel = (m.sides == region).any(axis=1)
+        assert set(_edge_counts(m.triangles[sel])) == {2}, region
+    for a in range(3):
+        pairs = m.periodic_pairs[a]
+        e = np.zeros(3)
+        e[a] = 1.0
+        assert np.abs(m.points[pairs[:, 1]] - m.points[pairs[:, 0]] - e).max() <= 1e-12
+    q = cell_quality(m.points, m.triangles)
+    assert q.mean() >= 0.85
+    p = m.points[m.triangles]
+    six = np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2]))
+    for inc in ms.inclusions:
+        vol = six[m.sides[:, 0] == inc.id].sum() / 6 - six[m.sides[:, 1] == inc.id].sum() / 6
+        assert vol == pytest.approx(inc.volume, rel=0.03), inc.id
