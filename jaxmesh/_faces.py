@@ -131,7 +131,7 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
             q[:, a] = 0.0
             s = reg.lookup(q).reshape(-1, 2)
             if (s < 0).any():
-                raise MeshingError(f"box-face stage, face {axis}: a trace on x_{axis} = L has no translate on x_{axis} = 0")
+                raise MeshingError("faces", f"face {axis}: a trace on x_{axis} = L has no translate on x_{axis} = 0")
         segs.append(s)
     seg = local[np.vstack(segs)]
     seg = np.unique(np.sort(seg, axis=1), axis=0)
@@ -157,7 +157,7 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
     tri = tri_fn(uv)
     tri, _ = improve_by_flips(uv, tri, seg)
     if missing_segments(tri, seg, len(uv)).any():
-        raise MeshingError(f"box-face stage, face {axis}: constrained segments missing from the face triangulation")
+        raise MeshingError("faces", f"face {axis}: constrained segments missing from the face triangulation")
     ncomp, comp = flood_fill(tri, seg, len(uv))
     cen = uv[tri].mean(axis=1)
     c3 = np.zeros((len(tri), 3))
@@ -174,7 +174,7 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
     q[:, a] = L[a]
     ids1 = np.concatenate([reg.lookup(q), reg.add(q1)])
     if (ids1 < 0).any():
-        raise MeshingError(f"box-face stage, face {axis}: a node of x_{axis} = 0 has no translate on x_{axis} = L")
+        raise MeshingError("faces", f"face {axis}: a node of x_{axis} = 0 has no translate on x_{axis} = L")
     t0 = ids0[tri][:, ::-1]  # CCW in (b, c) is +e_a: reverse so that the normal leaves the box at x_a = 0
     t1 = ids1[tri]
     sides = np.stack([region, np.full(len(tri), OUTSIDE)], axis=1)
@@ -190,7 +190,7 @@ def _periodic_pairs(reg: _Registry, box) -> dict[int, np.ndarray]:
         q[:, a] = box[a]
         hi = reg.lookup(q)
         if (hi < 0).any():
-            raise MeshingError(f"merge stage: {int((hi < 0).sum())} nodes on x_{a} = 0 have no translate on x_{a} = L")
+            raise MeshingError("merge", f"{int((hi < 0).sum())} nodes on x_{a} = 0 have no translate on x_{a} = L")
         out[a] = np.stack([lo, hi], axis=1)
     return out
 
@@ -251,6 +251,6 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig(),
         mesh.metadata["time_intersections"] = time.perf_counter() - t2
         if len(bad):
             ids = np.unique(mesh.sides[bad.reshape(-1)])
-            raise MeshingError(f"surface stage: {len(bad)} intersecting triangle pairs (regions {ids.tolist()})")
+            raise MeshingError("surfaces", f"{len(bad)} intersecting triangle pairs (regions {ids.tolist()})")
     mesh.metadata["n_self_intersections"] = 0 if config.check_intersections else None
     return mesh

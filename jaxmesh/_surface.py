@@ -306,7 +306,7 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
     step = min(config.mc_step * h0, float(np.min(upper - lower)) / 4)
     pts, tris = extract(phi_fn, lower, upper, step)
     if len(tris) < 4:
-        raise MeshingError(f"surface stage, inclusion {inclusion.id}: marching cubes found no closed surface")
+        raise MeshingError("surfaces", "marching cubes found no closed surface", inclusion.id)
     pts, _, _ = project(phi_fn, pts, np.zeros(pts.shape, bool), config.newton_steps)
     on_plane = np.zeros(pts.shape, bool)
     pts, tris, on_plane = improve(pts, tris, on_plane, phi_fn, h_fn, box, config, cut=False)
