@@ -148,19 +148,31 @@ def level_set_gradient(phi_fn, points: np.ndarray) -> np.ndarray:
     return project(phi_fn, points, np.ones((len(points), 3), bool), 0)[2]
 
 
-def extract(phi_fn, lower, upper, step: float):
+def extract(phi_fn, lower, upper, step: float, box):
     """Marching cubes of one inclusion on a window around its (unwrapped) bounds.
+
+    The window stays within half a box of the inclusion centre: beyond it the periodic level set
+    shows the next periodic image, which would leave an open piece of surface on the window edge.
+    Per axis, the sample spacing is at most `step` and at most the margin around the bounds.
 
     Returns:
         (points (n, 3), triangles (t, 3)) oriented with outward normals (positive enclosed volume).
     """
-    lo = np.asarray(lower, float) - 2.5 * step
-    n = np.ceil((np.asarray(upper, float) + 2.5 * step - lo) / step).astype(int) + 1
-    axes = [lo[a] + step * np.arange(n[a]) for a in range(3)]
+    lower, upper, L = (np.asarray(v, float) for v in (lower, upper, box))
+    centre, half = (lower + upper) / 2, (upper - lower) / 2
+    margin = np.minimum(2.5 * step, 0.5 * L - half - 1e-6 * L)
+    if (margin < 0.05 * step).any():
+        raise MeshingError("surfaces", f"the inclusion spans {np.max(2 * half / L):.0%} of the box along an axis; "
+                           "an inclusion must fit in half the box around its centre (with a margin)")
+    width = half + margin
+    n = np.ceil(2 * width / np.minimum(step, margin)).astype(int) + 1
+    spacing = 2 * width / (n - 1)
+    lo = centre - width
+    axes = [lo[a] + spacing[a] * np.arange(n[a]) for a in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     vals = evaluate(phi_fn, grid).reshape(n)
     vals = np.where(vals == 0.0, 1e-12 * step, vals)  # no vertex exactly on a grid node
-    verts, faces, _, _ = marching_cubes(vals, 0.0, spacing=(step,) * 3, allow_degenerate=False)
+    verts, faces, _, _ = marching_cubes(vals, 0.0, spacing=tuple(spacing), allow_degenerate=False)
     pts = verts.astype(np.float64) + lo
     tris = faces.astype(np.int64)
     if enclosed_volume(pts, tris) < 0:
@@ -304,9 +316,13 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
     centre = jnp.asarray(((lower + upper) / 2)[None])
     h0 = float(np.asarray(h_fn(centre))[0])
     step = min(config.mc_step * h0, float(np.min(upper - lower)) / 4)
-    pts, tris = extract(phi_fn, lower, upper, step)
+    pts, tris = extract(phi_fn, lower, upper, step, box)
     if len(tris) < 4:
         raise MeshingError("surfaces", "marching cubes found no closed surface", inclusion.id)
+    edge_use = np.bincount(half_edges(tris, len(pts))[1].reshape(-1))
+    if (edge_use != 2).any():
+        raise MeshingError("surfaces", f"the marching-cubes surface is not closed ({int((edge_use != 2).sum())} "
+                           "edges not in two triangles)", inclusion.id)
     pts, _, _ = project(phi_fn, pts, np.zeros(pts.shape, bool), config.newton_steps)
     on_plane = np.zeros(pts.shape, bool)
     pts, tris, on_plane = improve(pts, tris, on_plane, phi_fn, h_fn, box, config, cut=False)

@@ -24,7 +24,7 @@ def _closed(tris):
 @pytest.fixture(scope="module")
 def sphere():
     phi = sphere_sdf(np.array([0.5, 0.5, 0.5]), 0.2)
-    p, t = extract(phi, [0.3] * 3, [0.7] * 3, 0.05)
+    p, t = extract(phi, [0.3] * 3, [0.7] * 3, 0.05, (1.0, 1.0, 1.0))
     p, _, _ = project(phi, p, np.zeros(p.shape, bool))
     return phi, p, t
 
