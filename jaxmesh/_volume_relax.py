@@ -169,6 +169,7 @@ def remove_slivers(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, 
         info["inserted"] += len(cc)
         interior = np.concatenate([points[ns:], cc])
         points, cells, surface, _ = conforming_delaunay(surface, interior, config, project_fn)
+        ns = surface.n_points  # recovery may have split surface edges: new surface nodes come first
     info["slivers_after"] = int((min_dihedral(points, cells) < angle).sum())
     return points, cells, surface, info
 
