@@ -350,7 +350,8 @@ def tetrahedralize(surface: SurfaceMesh, interior_points: np.ndarray | None = No
         from ._volume_relax import relax_volume  # jax is imported only here
 
         mesh = _make_mesh(points, cells, surface, meta)
-        mesh = relax_volume(mesh, surface, h_fn, config, h_jax_fn=h_jax_fn, project_fn=project_fn)
+        mesh, surface = relax_volume(mesh, surface, h_fn, config, h_jax_fn=h_jax_fn, project_fn=project_fn,
+                                     return_surface=True)  # sliver removal may refine the surface
     else:
         mesh = _make_mesh(points, cells, surface, meta)
     if label_fn is not None:
