@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ._errors import MeshingError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -185,12 +184,8 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
     if interior is not None:
         t = stage("octree", t, f"{len(interior)} interior nodes")
 
-    try:
-        mesh = tetrahedralize(
-            surface, interior, h_fn=h_np, project_fn=levelset_projector(ms.inclusion_phi), label_fn=ms.label
-        )
-    except MeshingError:
-        raise
+    mesh = tetrahedralize(surface, interior, h_fn=h_np, project_fn=levelset_projector(ms.inclusion_phi),
+                          label_fn=ms.label, phi_fn=ms.phi)
     t = stage("volume", t, f"{mesh.n_points} points, {mesh.n_cells} tetrahedra")
     mesh.metadata.setdefault("counts", {}).update(
         {"surface_points": surface.n_points, "surface_triangles": surface.n_triangles}

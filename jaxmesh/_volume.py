@@ -299,8 +299,8 @@ def _group(keys: np.ndarray, values: np.ndarray):
 
 def tetrahedralize(surface: SurfaceMesh, interior_points: np.ndarray | None = None, *, h_fn: Callable,
                    config: VolumeConfig = VolumeConfig(), project_fn: Callable | None = None,
-                   label_fn: Callable | None = None, h_jax_fn: Callable | None = None,
-                   return_surface: bool = False):
+                   label_fn: Callable | None = None, phi_fn: Callable | None = None,
+                   h_jax_fn: Callable | None = None, return_surface: bool = False):
     """Tetrahedral mesh of a periodic RVE that contains every (possibly refined) surface triangle.
 
     Args:
@@ -312,6 +312,7 @@ def tetrahedralize(surface: SurfaceMesh, interior_points: np.ndarray | None = No
         project_fn: projection of split interface midpoints (see `levelset_projector`).
         label_fn: optional field labels points (k, 3) -> (k,) ids, checked at the centroids of
             cells with no surface vertex (MeshingError on disagreement).
+        phi_fn: optional global signed distance: the label check tolerates centroids near it.
         h_jax_fn: JAX size function for the relaxation (default: h_fn sampled on a periodic grid).
         return_surface: also return the SurfaceMesh actually kept (refined if recovery split edges).
     Returns:
@@ -355,7 +356,7 @@ def tetrahedralize(surface: SurfaceMesh, interior_points: np.ndarray | None = No
     else:
         mesh = _make_mesh(points, cells, surface, meta)
     if label_fn is not None:
-        check_labels(mesh, surface, label_fn)
+        check_labels(mesh, surface, label_fn, phi_fn)
     mesh.metadata["times"]["volume_total"] = time.perf_counter() - t0
     return (mesh, surface) if return_surface else mesh
 
@@ -371,17 +372,23 @@ def _make_mesh(points, cells, surface, meta) -> Mesh:
     return Mesh(points, cells, ids, surface.box, periodic=True, periodic_pairs=pairs, metadata=meta)
 
 
-def check_labels(mesh: Mesh, surface: SurfaceMesh, label_fn: Callable) -> int:
+def check_labels(mesh: Mesh, surface: SurfaceMesh, label_fn: Callable, phi_fn: Callable | None = None) -> int:
     """Compare the flood-fill labels with label_fn at the centroids of cells with no surface vertex.
 
+    With phi_fn (global signed distance), a centroid closer to the level set than half its cell's
+    longest edge may fall either side (the validator's rule): the surface triangles are chords of it.
     Returns the number of checked cells; raises MeshingError naming an inclusion on disagreement.
     """
     deep = np.all(mesh.cells >= surface.n_points, axis=1)
     if not deep.any():
         return 0
-    cen = mesh.points[mesh.cells[deep]].mean(axis=1)
+    p = mesh.points[mesh.cells[deep]]
+    cen = p.mean(axis=1)
     lab = np.asarray(label_fn(cen)).reshape(-1).astype(np.int64)
     bad = lab != mesh.inclusion_id[deep]
+    if phi_fn is not None and bad.any():
+        lmax = np.max([np.linalg.norm(p[:, i] - p[:, j], axis=1) for i in range(4) for j in range(i)], axis=0)
+        bad &= np.abs(np.asarray(phi_fn(cen), dtype=float).reshape(-1)) > 0.5 * lmax
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
         raise MeshingError("volume", f"labels: {int(bad.sum())} of {int(deep.sum())} deep cells disagree with the "
