@@ -37,6 +37,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._periodic import minimum_image, wrap
 from .geometry._differential import max_abs_curvature
+from .geometry._microstructure import _traceable
 from .geometry._grid import interpolate_linear
 
 # elements per unit volume of a mesh of regular simplices of edge h: 1 / vol(simplex) = c_d / h^d
@@ -476,7 +477,7 @@ def _curvature(phi_fn: Callable, points: np.ndarray) -> np.ndarray:
     m = points.shape[0]
     size = max(64, 1 << (m - 1).bit_length())
     padded = jnp.asarray(np.concatenate([points, np.repeat(points[-1:], size - m, axis=0)]))
-    if isinstance(phi_fn, (jax.tree_util.Partial, eqx.Module)):
+    if _traceable(phi_fn):
         return np.asarray(max_abs_curvature(phi_fn, padded))[:m]
     with jax.disable_jit():
         return np.asarray(max_abs_curvature(phi_fn, padded))[:m]

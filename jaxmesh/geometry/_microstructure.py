@@ -12,6 +12,7 @@ import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -42,6 +43,14 @@ class Inclusion:
     description: dict = field(default_factory=dict)
 
 
+def _pad_to_bucket(data):
+    """Pad window data at its far end to shapes rounded up to 8 (16 above 64): inclusions of
+    similar size then share every compilation. Safe: interpolation only reads the core of the
+    window and its spline neighbours, which the padding never reaches."""
+    target = [-(-n // (8 if n <= 64 else 16)) * (8 if n <= 64 else 16) for n in data.shape]
+    return jnp.pad(data, [(0, t - n) for t, n in zip(target, data.shape)])
+
+
 def _window_phi(data, origin, center, half, box, window_box, points, *, cubic, periodic):
     """Level set of one window: the B-spline (or multilinear) interpolant inside the core, and
     outside it the value at the point clamped onto the core plus the distance to the core."""
@@ -70,24 +79,33 @@ def _map_kernel(func, params, box, window_box, batch):
     return jax.lax.map(lambda a: func(*a[0], box, window_box, a[1]), (params, batch))
 
 
-class _Periodized:
+class _Periodized(eqx.Module):
     """phi(x) = min over the 3^d image shifts of f(wrap(x) + shift): a periodic level set from an
-    SDF defined on R^d (wrap first, so points far outside the box are handled too)."""
+    SDF defined on R^d (wrap first, so points far outside the box are handled too).
 
-    def __init__(self, fn: Callable, box: tuple[float, ...]):
-        self.fn, self.box = fn, box
-        self.shifts = image_shifts(len(box), box)
+    A PyTree: with a Partial f (sphere_sdf, ellipsoid_sdf) inclusions of one kind share their
+    compilations; an opaque closure f is a static leaf (one compilation per inclusion)."""
+
+    fn: Callable
+    box: tuple[float, ...] = eqx.field(static=True)
 
     def __call__(self, points):
         points = jnp.asarray(points)
         d = len(self.box)
         lead, pts = points.shape[:-1], wrap(points.reshape(-1, d), jnp.asarray(self.box))
-        shifts = jnp.asarray(self.shifts, dtype=pts.dtype)
-        vals = jnp.reshape(self.fn((pts[None] + shifts[:, None]).reshape(-1, d)), (len(self.shifts), -1))
+        shifts = jnp.asarray(image_shifts(d, self.box), dtype=pts.dtype)
+        vals = jnp.reshape(self.fn((pts[None] + shifts[:, None]).reshape(-1, d)), (len(shifts), -1))
         return jnp.min(vals, axis=0).reshape(lead)
 
 
-_apply = jax.jit(lambda fn, pts: fn(pts))  # fn: a Partial (PyTree): one compilation per kernel and shape
+_apply = eqx.filter_jit(lambda fn, pts: fn(pts))  # fn a PyTree: one compilation per kernel and shape
+
+
+def _traceable(fn) -> bool:
+    """A PyTree level set whose arrays are traced (not an opaque closure compiled per object)."""
+    if isinstance(fn, _Periodized):
+        return _traceable(fn.fn)
+    return isinstance(fn, (jax.tree_util.Partial, eqx.Module))
 
 
 def evaluate(phi_fn: Callable, points: np.ndarray, name: str | None = None, chunk: int = 2**15) -> np.ndarray:
@@ -100,7 +118,7 @@ def evaluate(phi_fn: Callable, points: np.ndarray, name: str | None = None, chun
         size = max(64, 1 << (k - 1).bit_length())
         p = np.concatenate([p, np.repeat(p[-1:], size - k, axis=0)]) if size > k else p
         try:
-            v = _apply(phi_fn, p) if isinstance(phi_fn, jax.tree_util.Partial) else phi_fn(jnp.asarray(p))
+            v = _apply(phi_fn, p) if _traceable(phi_fn) else phi_fn(jnp.asarray(p))
             v = np.asarray(v, dtype=float)
         except Exception as err:
             if name is None:
@@ -475,9 +493,9 @@ class Microstructure:
                 last = (np.asarray(shape) - 1) * spacing
                 upper = np.where(starts[c - 1] + lengths[c - 1] == shape, last, upper)
             centre, half = zip(*(comp.core_geometry(win, k, spacing, W.shape) for k in range(len(shape))))
-            data = bspline_coefficients(W) if order == "cubic" else jnp.asarray(W)
+            data = _pad_to_bucket(bspline_coefficients(W) if order == "cubic" else jnp.asarray(W))
             args = [jnp.asarray(a, dtype=data.dtype) for a in
-                    (win.origin * spacing, centre, half, box, np.asarray(W.shape) * spacing)]
+                    (win.origin * spacing, centre, half, box, np.asarray(data.shape) * spacing)]
             phi_fn = jax.tree_util.Partial(_KERNELS[(order == "cubic", bool(periodic))], data, *args)
             desc = dict(desc, n_samples=stat[0], thickness=stat[1])
             inclusions.append(Inclusion(c, phi_fn, lower, upper, None, desc))
