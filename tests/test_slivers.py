@@ -7,7 +7,6 @@ from scipy.spatial import Delaunay
 
 from jaxmesh._quality import cell_quality, signed_volumes
 from jaxmesh._slivers import (
-    _edge_removal,
     _polygon_triangulations,
     _edges,
     colour_classes,
@@ -89,12 +88,12 @@ def _edge_ring(n_ring=4, half=2.0):
 def test_edge_removal_replaces_the_ring_and_keeps_the_volume():
     for n_ring in (3, 4, 5, 6, 7):
         pts, cells = _edge_ring(n_ring)
-        res = _edge_removal(pts, cells, np.arange(len(cells)), 0, 1)
-        assert res is not None
-        tets, qmin = res
-        assert len(tets) == 2 * n_ring - 4 and qmin > tet_quality(pts[cells]).min()
+        tets, n = improve_topology(pts, cells, np.zeros(0, np.int64), threshold=0.9, passes=1)
+        assert n == 1 and len(tets) == 2 * n_ring - 4  # one edge removal, n tets -> 2 n - 4
+        assert tet_quality(pts[tets]).min() > tet_quality(pts[cells]).min()
         assert np.all(signed_volumes(pts, tets) > 0)
         assert abs(signed_volumes(pts, tets).sum() - signed_volumes(pts, cells).sum()) < 1e-12
+        assert not ((tets == 0).any(axis=1) & (tets == 1).any(axis=1)).any()  # the edge is gone
 
 
 def test_improve_topology_flips_unless_a_face_is_protected():
