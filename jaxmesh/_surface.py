@@ -106,6 +106,15 @@ def as_size_fn(h, box) -> Callable:
     raise ValueError(f"h: expected a float > 0 or a callable points (m, 3) -> (m,), got {h!r}. Hint: h = radius / 4.")
 
 
+_apply_size = eqx.filter_jit(lambda h_fn, points: h_fn(points))
+
+
+def evaluate_size(h_fn, points: np.ndarray) -> np.ndarray:
+    """(m,) h at NumPy points, padded to a bucket so that one compilation serves many calls."""
+    p, k = _pad(np.asarray(points, float).reshape(-1, 3))
+    return np.asarray(_apply_size(h_fn, jnp.asarray(p)))[:k]
+
+
 @eqx.filter_jit
 def _newton(phi_fn, pts, locked, n_iter: int):
     def body(p, _):
@@ -230,7 +239,7 @@ def improve(points, tris, on_plane, phi_fn, h_fn, box, config: SurfaceConfig, cu
     for _ in range(config.improve_rounds):
         edges, _ = half_edges(tris, len(points))
         length = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
-        h_mid = np.asarray(h_fn(jnp.asarray(0.5 * (points[edges[:, 0]] + points[edges[:, 1]]))))
+        h_mid = evaluate_size(h_fn, 0.5 * (points[edges[:, 0]] + points[edges[:, 1]]))
         split = length > config.refine_ratio * h_mid
         if split.any():
             n0 = len(points)
@@ -263,7 +272,7 @@ def cut_by_box(points, tris, on_plane, phi_fn, box, h_fn, config: SurfaceConfig)
         lo, hi = points[:, a].min(), points[:, a].max()
         for k in range(int(np.ceil(lo / L[a])), int(np.floor(hi / L[a])) + 1):
             value = k * L[a]
-            h_loc = np.asarray(h_fn(jnp.asarray(points)))
+            h_loc = evaluate_size(h_fn, points)
             tol = config.snap_fraction * float(np.min(h_loc))
             cand = snap_candidates(points, tris, on_plane, a, value, tol)
             if cand.size:
@@ -314,7 +323,7 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
     phi_fn = inclusion.phi_fn
     lower, upper = np.asarray(inclusion.lower, float), np.asarray(inclusion.upper, float)
     centre = jnp.asarray(((lower + upper) / 2)[None])
-    h0 = float(np.asarray(h_fn(centre))[0])
+    h0 = float(evaluate_size(h_fn, np.asarray(centre))[0])
     step = min(config.mc_step * h0, float(np.min(upper - lower)) / 4)
     pts, tris = extract(phi_fn, lower, upper, step, box)
     if len(tris) < 4:
