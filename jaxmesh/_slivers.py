@@ -271,7 +271,7 @@ def smooth_vertices(points: np.ndarray, cells: np.ndarray, free: np.ndarray, swe
     """Move free vertices to raise the worst quality of their stars (fixed topology).
 
     Per vertex the candidates are its neighbours' centroid, the volume-weighted circumcentre of its
-    star (ODT) and steps up the gradient of its worst tet. A candidate is taken when it raises the
+    star (ODT), steps up the gradient of its worst tet and up the gradient of the star's mean. A candidate is taken when it raises the
     star's minimum quality, or keeps it and raises the star's mean; every tet stays positive.
     Sets of vertices that share no tet move together (`colour_classes`).
 
@@ -359,6 +359,15 @@ def _smooth_class(points, cells, by, off, edges, deg, verts) -> int:
     g /= np.maximum(np.linalg.norm(g, axis=1), 1e-300)[:, None]
     for step in (0.3, 0.1, 0.03, 0.01):
         cands.append(x0 + step * scale[:, None] * g)
+    gm = np.zeros((k, 3))  # gradient of the star's mean quality
+    for j in range(3):
+        for s in (1.0, -1.0):
+            x = x0.copy()
+            x[:, j] += s * eps
+            gm[:, j] += s * _star_eval(points, cells, rows, owner, local, x, k)[1]
+    gm /= np.maximum(np.linalg.norm(gm, axis=1), 1e-300)[:, None]
+    for step in (0.1, 0.03):
+        cands.append(x0 + step * scale[:, None] * gm)
     for x in cands:
         qmin, qmean, _ = _star_eval(points, cells, rows, owner, local, x, k)
         better = (qmin > 0) & (np.minimum(qmin, TAU) >= np.minimum(best_min, TAU)) & (
@@ -390,6 +399,17 @@ def _polygon_triangulations(n: int) -> np.ndarray:
 _TRIANGULATIONS = {n: _polygon_triangulations(n) for n in range(3, 8)}
 
 
+def _triangle_index(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct triangles (c, 3) of all triangulations of an n-gon and each triangulation as
+    indices into them (k, n - 2): each candidate tet is evaluated once."""
+    tris = _TRIANGULATIONS[n]
+    uniq, inv = np.unique(tris.reshape(-1, 3), axis=0, return_inverse=True)
+    return uniq, inv.reshape(tris.shape[:2])
+
+
+_TRIANGLE_INDEX = {n: _triangle_index(n) for n in _TRIANGULATIONS}
+
+
 def _sorted_keys(items: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Packed keys of sorted vertex tuples (rows of items (m, k, d)), sorted, and the row of each."""
     s = np.sort(items, axis=2).reshape(-1, items.shape[2])
@@ -406,7 +426,7 @@ def _edge_candidates(points, cells, q, edges, protected, tkeys, towner):
     key = edges[:, 0] * n + edges[:, 1]
     lo, hi = np.searchsorted(tkeys, key), np.searchsorted(tkeys, key, side="right")
     out = []
-    for size, tris in _TRIANGULATIONS.items():
+    for size, (tris, index) in _TRIANGLE_INDEX.items():
         sel = np.flatnonzero(hi - lo == size)
         if not len(sel):
             continue
@@ -423,16 +443,18 @@ def _edge_candidates(points, cells, q, edges, protected, tkeys, towner):
         p, r, ring, ring_tets = p[ok], r[ok], ring[ok], ring_tets[ok]
         flip = _six_volumes(points[np.stack([p, r, ring[:, 0], ring[:, 1]], 1)]) < 0
         ring[flip] = ring[flip, ::-1]  # (p, r, o_i, o_i+1) positive: then (a, b, c, r) is positive
-        tri = ring[:, tris]  # (k, T, size - 2, 3)
-        k, T = tri.shape[:2]
-        up = np.concatenate([tri, np.broadcast_to(r[:, None, None, None], tri.shape[:3] + (1,))], -1)
-        down = np.concatenate([tri[..., [0, 2, 1]], np.broadcast_to(p[:, None, None, None], tri.shape[:3] + (1,))], -1)
-        tets = np.concatenate([up, down], axis=2)  # (k, T, 2 size - 4, 4)
-        qual = tet_quality(points[tets.reshape(-1, 4)]).reshape(k, T, -1).min(axis=2)
+        tri = ring[:, tris]  # (k, c, 3): every triangle of the ring, with r above and p below
+        k, c = tri.shape[:2]
+        up = np.concatenate([tri, np.broadcast_to(r[:, None, None], (k, c, 1))], -1)
+        down = np.concatenate([tri[..., [0, 2, 1]], np.broadcast_to(p[:, None, None], (k, c, 1))], -1)
+        score = np.minimum(tet_quality(points[up.reshape(-1, 4)]), tet_quality(points[down.reshape(-1, 4)]))
+        qual = score.reshape(k, c)[:, index].min(axis=2)  # (k, triangulations)
         best = np.argmax(qual, axis=1)
         gain = qual[np.arange(k), best] - q[ring_tets].min(axis=1)
-        good = gain > 1e-9
-        out.append((gain[good], ring_tets[good], tets[np.arange(k), best][good]))
+        good = np.flatnonzero(gain > 1e-9)
+        chosen = index[best[good]]  # (g, size - 2) triangle ids
+        tets = np.concatenate([up[good[:, None], chosen], down[good[:, None], chosen]], axis=1)
+        out.append((gain[good], ring_tets[good], tets))
     return out
 
 

@@ -129,7 +129,7 @@ def _face_keys(cells: np.ndarray, n: int) -> np.ndarray:
 
 
 def optimise_mesh(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, rounds: int = 3,
-                  threshold: float = 0.4) -> tuple[np.ndarray, np.ndarray, dict]:
+                  threshold: float = 0.7) -> tuple[np.ndarray, np.ndarray, dict]:
     """Rounds of flips (`improve_topology`) then smoothing of the interior nodes (`smooth_vertices`).
 
     Flips first: the conforming Delaunay's slivers are mostly fixed by edge removals, and smoothing
