@@ -7,6 +7,7 @@ from ._generate import microstructure_from_specs as microstructure_from_specs
 from ._generate import random_inclusions as random_inclusions
 from ._generate import sample_levelset as sample_levelset
 from ._generate import write_input as write_input
+from ._homogenize import homogenize_conductivity as homogenize_conductivity
 from ._mesh import Mesh as Mesh
 from ._mesh import make_periodic_pairs as make_periodic_pairs
 from ._mesh2d import mesh_2d as mesh_2d
