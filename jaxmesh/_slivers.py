@@ -1,20 +1,25 @@
-"""Sliver removal (paper 4.7) by local operations that never touch a surface triangle. NumPy only.
+"""Tet quality optimisation and sliver removal (paper 4.7) by local operations that never touch a
+surface triangle or move a surface node. NumPy only.
 
-(a) vertex moves: a free vertex of a sliver is pushed away from its opposite face (the ball-vertex
-idea, done geometrically) or moved to the centroid of its star, accepted when the worst dihedral
-angle of its star improves and every tet stays positive (fixed topology keeps the surface);
-(b) 2-3 and 3-2 flips whose removed faces are not surface triangles, accepted when they raise
-the worst dihedral angle of the cells they replace.
+(a) smoothing: interior vertices move to raise the worst and the mean quality of their stars (many
+at once: sets of vertices that share no tet);
+(b) flips: edge removal (3-2, 4-4, 5-6, 6-8, 7-10) and 2-3 flips whose removed faces are not surface
+triangles, applied when they raise the worst quality of the tets they replace;
+(c) Steiner points: a new interior vertex in a local Delaunay cavity bounded by the surface.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ._quality import TET_EDGES, dihedral_angles, signed_volumes
+from ._quality import TET_EDGES, dihedral_angles
 from ._volume_recover import triangle_keys
 
-__all__ = ["min_dihedral", "sliver_mask", "improve_vertices", "flip_slivers"]
+__all__ = ["min_dihedral", "tet_quality", "colour_classes", "smooth_vertices", "improve_topology",
+           "insert_steiner"]
+
+
+_FACES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])  # face k is opposite vertex k
 
 
 def min_dihedral(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -25,173 +30,12 @@ def min_dihedral(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
     return np.minimum(d, 180.0 - d).min(axis=1)
 
 
-def sliver_mask(points: np.ndarray, cells: np.ndarray, angle: float) -> np.ndarray:
-    """(m,) bool: tets with a dihedral angle below ``angle`` degrees (or above 180 - angle)."""
-    return min_dihedral(points, cells) < angle
-
-
 def _stars(cells: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Vertex -> tets, CSR (tet ids sorted by vertex, offsets (n + 1,))."""
     flat = cells.ravel()
     order = np.argsort(flat, kind="stable")
     offsets = np.concatenate([[0], np.cumsum(np.bincount(flat, minlength=n))])
     return order // 4, offsets
-
-
-def _score(points: np.ndarray, cells: np.ndarray) -> float:
-    """Worst dihedral angle of a few tets, -inf if one is not positive."""
-    if np.any(signed_volumes(points, cells) <= 0):
-        return -np.inf
-    return float(min_dihedral(points, cells).min())
-
-
-def improve_vertices(points: np.ndarray, cells: np.ndarray, free: np.ndarray, h: np.ndarray, angle: float = 10.0,
-                     passes: int = 3) -> tuple[np.ndarray, int]:
-    """Move free vertices of slivers to raise the worst dihedral angle of their stars (fixed topology).
-
-    Args:
-        points: (n, 3); cells: (m, 4) positive tets; free: (n,) bool movable vertices;
-        h: (n,) target sizes at the vertices; angle: sliver threshold (degrees); passes: sweeps.
-    Returns:
-        (new points, number of accepted moves).
-    """
-    points = np.array(points, dtype=float, copy=True)
-    by, off = _stars(cells, len(points))
-    moves = 0
-    for _ in range(passes):
-        bad = np.flatnonzero(sliver_mask(points, cells, angle))
-        if not len(bad):
-            break
-        accepted = 0
-        for t in bad:
-            for v in cells[t]:
-                if not free[v]:
-                    continue
-                star = cells[by[off[v]:off[v + 1]]]
-                base = _score(points, star)
-                if base >= angle:
-                    break
-                x0 = points[v].copy()
-                opp = cells[t][cells[t] != v]
-                a, b, c = points[opp]
-                nrm = np.cross(b - a, c - a)
-                nrm /= max(np.linalg.norm(nrm), 1e-300)
-                if np.dot(x0 - a, nrm) < 0:
-                    nrm = -nrm
-                height = np.dot(x0 - a, nrm)
-                push = max(np.sqrt(2.0 / 3.0) * h[v] - height, 0.0)
-                ring = np.unique(star)
-                cands = [x0 + s * push * nrm for s in (1.0, 0.5, 0.25)]
-                cands.append(points[ring[ring != v]].mean(axis=0))
-                best, best_x = base, None
-                for x in cands:
-                    points[v] = x
-                    sc = _score(points, star)
-                    if sc > best + 1e-9:
-                        best, best_x = sc, x.copy()
-                points[v] = x0 if best_x is None else best_x
-                if best_x is not None:
-                    accepted += 1
-        moves += accepted
-        if not accepted:
-            break
-    return points, moves
-
-
-def _oriented(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    tets = np.array(tets, dtype=np.int64)
-    neg = signed_volumes(points, tets) < 0
-    tets[neg, :2] = tets[neg, 1::-1]
-    return tets
-
-
-def flip_slivers(points: np.ndarray, cells: np.ndarray, protected: np.ndarray, angle: float = 10.0,
-                 passes: int = 3) -> tuple[np.ndarray, int]:
-    """2-3 and 3-2 flips around slivers that raise the worst dihedral angle locally.
-
-    Args:
-        points: (n, 3); cells: (m, 4) positive tets; protected: sorted keys (`triangle_keys`) of the
-            faces that must stay (surface triangles); angle: sliver threshold; passes: sweeps.
-    Returns:
-        (new cells, number of flips).
-    """
-    n = len(points)
-    cells = np.asarray(cells, dtype=np.int64).copy()
-    flips = 0
-    for _ in range(passes):
-        bad = np.flatnonzero(sliver_mask(points, cells, angle))
-        if not len(bad):
-            break
-        by, off = _stars(cells, n)
-        dead = np.zeros(len(cells), bool)
-        touched = np.zeros(n, bool)
-        new = []
-
-        def around(*verts):
-            s = by[off[verts[0]]:off[verts[0] + 1]]
-            for v in verts[1:]:
-                s = s[np.any(cells[s] == v, axis=1)]
-            return s
-
-        def is_protected(faces):
-            return np.isin(triangle_keys(np.asarray(faces), n), protected).any()
-
-        done = 0
-        for t in bad[np.argsort(min_dihedral(points, cells[bad]))]:
-            if dead[t] or touched[cells[t]].any():
-                continue
-            tet = cells[t]
-            applied = False
-            for i, j in TET_EDGES:  # 3-2: an edge with exactly three tets around it
-                p, q = tet[i], tet[j]
-                ring = around(p, q)
-                if len(ring) != 3 or dead[ring].any() or touched[cells[ring]].any():
-                    continue
-                others = np.unique(cells[ring][(cells[ring] != p) & (cells[ring] != q)])
-                if len(others) != 3 or is_protected([[p, q, o] for o in others]):
-                    continue
-                # closed ring: each face (p, q, o) is shared by two of the three tets
-                if any(len(around(p, q, o)) != 2 for o in others):
-                    continue
-                cand = _oriented(points, [[*others, p], [*others, q]])
-                v_old = np.abs(signed_volumes(points, cells[ring])).sum()
-                if abs(np.abs(signed_volumes(points, cand)).sum() - v_old) > 1e-9 * v_old:
-                    continue  # pq does not cross the triangle of the three others
-                if _score(points, cand) > _score(points, cells[ring]) + 1e-9:
-                    dead[ring] = True
-                    touched[np.unique(cells[ring])] = True
-                    new.append(cand)
-                    applied = True
-                    break
-            if applied:
-                done += 1
-                continue
-            for k in range(4):  # 2-3: across a face that is not a surface triangle
-                face = np.delete(tet, k)
-                nb = around(*face)
-                nb = nb[nb != t]
-                if len(nb) != 1 or dead[nb[0]] or touched[cells[nb[0]]].any() or is_protected([face]):
-                    continue
-                p, q = tet[k], cells[nb[0]][~np.isin(cells[nb[0]], face)][0]
-                a, b, c = face
-                cand = _oriented(points, [[a, b, p, q], [b, c, p, q], [c, a, p, q]])
-                if np.any(np.abs(signed_volumes(points, cand)) <= 0):
-                    continue
-                # valid only if pq crosses abc: the three new volumes add up to the old two
-                old = np.abs(signed_volumes(points, cells[[t, nb[0]]])).sum()
-                if abs(np.abs(signed_volumes(points, cand)).sum() - old) > 1e-9 * old:
-                    continue
-                if _score(points, cand) > _score(points, cells[[t, nb[0]]]) + 1e-9:
-                    dead[[t, nb[0]]] = True
-                    touched[np.unique(cells[[t, nb[0]]])] = True
-                    new.append(cand)
-                    done += 1
-                    break
-        if not done:
-            break
-        flips += done
-        cells = np.concatenate([cells[~dead]] + new)
-    return cells, flips
 
 
 # ----------------------------------------------------------------------------- optimisation-based smoothing
@@ -494,7 +338,7 @@ def _chain(pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _face_candidates(points, cells, q, bad, protected, fkeys, fowner):
     """2-3 flips across the faces of the bad tets: (gain, removed pairs (k, 2), new tets (k, 3, 4))."""
     n = len(points)
-    faces = cells[bad][:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3)
+    faces = cells[bad][:, _FACES].reshape(-1, 3)
     t = np.repeat(bad, 4)
     apex = cells[bad].reshape(-1)  # face k of a tet is the one opposite its vertex k
     key = triangle_keys(faces, n)
@@ -538,7 +382,7 @@ def improve_topology(points: np.ndarray, cells: np.ndarray, protected: np.ndarra
         if not len(bad):
             break
         tkeys, towner = _sorted_keys(cells[:, TET_EDGES], n)
-        fkeys, fowner = _sorted_keys(cells[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], n)
+        fkeys, fowner = _sorted_keys(cells[:, _FACES], n)
         edges = np.unique(np.sort(cells[bad][:, TET_EDGES].reshape(-1, 2), axis=1), axis=0)
         cands = _edge_candidates(points, cells, q, edges, protected, tkeys, towner)
         cands.append(_face_candidates(points, cells, q, bad, protected, fkeys, fowner))
@@ -557,3 +401,101 @@ def improve_topology(points: np.ndarray, cells: np.ndarray, protected: np.ndarra
         total += len(new)
         cells = np.concatenate([cells[~dead], np.concatenate(new)])
     return cells, total
+
+
+# ----------------------------------------------------------------------------- Steiner points
+def _cavity(points, cells, dead, fkeys, fowner, protected, seed, x):
+    """Bowyer-Watson cavity of x grown from tet seed across faces that are not protected: tets whose
+    circumsphere holds x. Returns the tet ids, or None if it meets a tet changed in this pass."""
+    n = len(points)
+    cav, todo, seen = [seed], [seed], {seed}
+    while todo:
+        keys = triangle_keys(cells[todo.pop()][_FACES], n)
+        for key in keys[~np.isin(keys, protected)]:
+            lo, hi = np.searchsorted(fkeys, key), np.searchsorted(fkeys, key, side="right")
+            for nb in (int(v) for v in fowner[lo:hi]):
+                if nb in seen:
+                    continue
+                seen.add(nb)
+                c = _circumcentres_p(points[cells[nb]][None])[0]
+                if np.sum((x - c) ** 2) < np.sum((points[cells[nb][0]] - c) ** 2) * (1 - 1e-12):
+                    if dead[nb]:
+                        return None
+                    cav.append(nb)
+                    todo.append(nb)
+    return np.array(cav)
+
+
+def _fill_cavity(points, cells, cav, x, protected):
+    """Tets joining the cavity's boundary faces to x (as vertex len(points)), or None when they do not
+    tile the cavity exactly or a surface triangle lies inside it."""
+    n = len(points)
+    keys = triangle_keys(cells[cav][:, _FACES].reshape(-1, 3), n)
+    uniq, count = np.unique(keys, return_counts=True)
+    if np.isin(uniq[count == 2], protected).any():
+        return None
+    t, k = np.nonzero(np.isin(keys, uniq[count == 1]).reshape(-1, 4))
+    star = cells[cav][t].copy()
+    star[np.arange(len(t)), k] = n  # orientation kept: positive iff x sees the face from inside
+    p = np.concatenate([points, x[None]])
+    vol = _six_volumes(p[star])
+    if vol.min() <= 0 or abs(vol.sum() - _six_volumes(points[cells[cav]]).sum()) > 1e-9 * vol.sum():
+        return None
+    return star
+
+
+def insert_steiner(points: np.ndarray, cells: np.ndarray, protected: np.ndarray, bad: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split bad tets by a new interior vertex with a local Delaunay cavity that never crosses a
+    surface triangle. Candidates: the circumcentre and centroid of the tet and of its neighbours
+    across non-surface faces; the best is kept when it raises the cavity's worst quality.
+
+    For slivers whose four vertices are on the surface (no vertex can move, no flip applies).
+
+    Args:
+        points, cells; protected: `triangle_keys` (n = len(points)) of the surface triangles;
+        bad: ids of the tets to split.
+    Returns:
+        (points with the new vertices appended, cells, ids of the new vertices).
+    """
+    n = len(points)
+    cells = np.asarray(cells, dtype=np.int64)
+    fkeys, fowner = _sorted_keys(cells[:, _FACES], n)
+    dead = np.zeros(len(cells), bool)
+    new, added = [], []
+    for t in (int(v) for v in bad):
+        if dead[t]:
+            continue
+        seeds = [t]
+        for key in triangle_keys(cells[t][_FACES], n):
+            if not np.isin(key, protected):
+                lo, hi = np.searchsorted(fkeys, key), np.searchsorted(fkeys, key, side="right")
+                seeds += [int(s) for s in fowner[lo:hi] if s != t]
+        best = None
+        for s in seeds:
+            p = points[cells[s]]
+            for x in (_circumcentres_p(p[None])[0], p.mean(axis=0)):
+                cav = _cavity(points, cells, dead, fkeys, fowner, protected, t, x)
+                star = None if cav is None else _fill_cavity(points, cells, cav, x, protected)
+                if star is None:
+                    continue
+                star[star == n] = n + len(added)
+                gain = _quality_with(points, new, x, star) - tet_quality(points[cells[cav]]).min()
+                if gain > 1e-9 and (best is None or gain > best[0]):
+                    best = (gain, cav, star, x)
+        if best is None:
+            continue
+        _, cav, star, x = best
+        dead[cav] = True
+        new.append((star, x))
+        added.append(n + len(added))
+    if not added:
+        return points, cells, np.zeros(0, np.int64)
+    points = np.concatenate([points, np.array([x for _, x in new])])
+    return points, np.concatenate([cells[~dead]] + [s for s, _ in new]), np.array(added)
+
+
+def _quality_with(points, new, x, star):
+    """Worst quality of star whose new vertex x follows the vertices added so far."""
+    p = np.concatenate([points, np.array([y for _, y in new] + [x])])
+    return tet_quality(p[star]).min()

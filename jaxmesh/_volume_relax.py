@@ -13,7 +13,7 @@ import numpy as np
 
 from ._mesh import Mesh
 from ._quality import cell_quality
-from ._slivers import flip_slivers, improve_topology, improve_vertices, min_dihedral, smooth_vertices
+from ._slivers import improve_topology, insert_steiner, min_dihedral, smooth_vertices
 from ._surface_mesh import SurfaceMesh
 from ._truss import TrussConfig, make_constraints, relax
 from ._volume import VolumeConfig, _check_h, _make_mesh, conforming_delaunay, delaunay_tets
@@ -129,14 +129,14 @@ def _face_keys(cells: np.ndarray, n: int) -> np.ndarray:
 
 
 def optimise_mesh(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, rounds: int = 3,
-                  threshold: float = 0.7) -> tuple[np.ndarray, np.ndarray, dict]:
+                  threshold: float = 0.7, free: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Rounds of flips (`improve_topology`) then smoothing of the interior nodes (`smooth_vertices`).
 
     Flips first: the conforming Delaunay's slivers are mostly fixed by edge removals, and smoothing
     then works on a better topology. Surface triangles and surface nodes never change.
     """
-    ns = surface.n_points
-    free = np.arange(len(points)) >= ns
+    if free is None:
+        free = np.arange(len(points)) >= surface.n_points
     protected = np.unique(triangle_keys(surface.triangles, len(points)))
     info = {"opt_flips": 0, "opt_moves": 0}
     for rnd in range(rounds):
@@ -151,66 +151,33 @@ def optimise_mesh(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, r
 
 def remove_slivers(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, h_fn: Callable,
                    config: VolumeConfig = VolumeConfig(), project_fn: Callable | None = None):
-    """Quality optimisation (`optimise_mesh`: flips and smoothing), then for slivers left: (a) vertex
-    pushes, (b) 2-3/3-2 flips off the surface, (c) circumcentre insertion (a conforming Delaunay again,
-    optimised again) where the circumcentre is clear of the surface.
+    """Quality optimisation (`optimise_mesh`: flips and smoothing), then rounds for the slivers left:
+    Steiner points in local cavities that keep the surface (`insert_steiner`), optimised again near
+    them. Slivers can stay where the surface itself forms them (a tet bounded by surface triangles).
 
     Returns:
-        (points, cells, the SurfaceMesh (refined only if a re-Delaunay had to split), info {'slivers_before',
-        'slivers_after', 'vertex_moves', 'flips', 'inserted', 'opt_flips', 'opt_moves'}).
+        (points, cells, the SurfaceMesh (unchanged), info {'slivers_before', 'slivers_after', 'inserted',
+        'opt_flips', 'opt_moves'}).
     """
-    ns, angle = surface.n_points, config.sliver_angle
-    info = {"slivers_before": int((min_dihedral(points, cells) < angle).sum()), "vertex_moves": 0, "flips": 0,
-            "inserted": 0, "opt_flips": 0, "opt_moves": 0}
+    angle = config.sliver_angle
+    info = {"slivers_before": int((min_dihedral(points, cells) < angle).sum()), "inserted": 0, "opt_flips": 0,
+            "opt_moves": 0}
+    free = np.arange(len(points)) >= surface.n_points
     for rnd in range(max(config.sliver_passes, 1)):
-        points, cells, oinfo = optimise_mesh(points, cells, surface)
+        points, cells, oinfo = optimise_mesh(points, cells, surface, free=free)
         for k, v in oinfo.items():
             info[k] += v
-        if not (min_dihedral(points, cells) < angle).any() or rnd == config.sliver_passes - 1:
+        bad = np.flatnonzero(min_dihedral(points, cells) < angle)
+        if not len(bad) or rnd == config.sliver_passes - 1:
             break
-        free = np.arange(len(points)) >= ns
-        h = np.zeros(len(points))
-        h[free] = _check_h(h_fn, points[free]) if free.any() else 0.0
-        points, moved = improve_vertices(points, cells, free, h, angle, passes=3)
         protected = np.unique(triangle_keys(surface.triangles, len(points)))
-        cells, flipped = flip_slivers(points, cells, protected, angle, passes=3)
-        info["vertex_moves"] += moved
-        info["flips"] += flipped
-        bad = min_dihedral(points, cells) < angle
-        if not bad.any():
+        points, cells, added = insert_steiner(points, cells, protected, bad)
+        if not len(added):
             break
-        # (c) circumcentres of the remaining slivers, when clear of the surface and of other nodes
-        cc = _circumcentres(points, cells[bad])
-        box = np.asarray(surface.box)
-        inside = np.all((cc > 0) & (cc < box), axis=1)
-        cc = cc[inside]
-        if not len(cc):
-            break
-        hc = _check_h(h_fn, cc)
-        clear = distance_to_surface(cc, surface, 0.3 * hc) >= 0.3 * hc
-        cc = cc[clear]
-        if not len(cc):
-            break
-        from scipy.spatial import cKDTree
-
-        d, _ = cKDTree(points).query(cc)
-        cc = cc[d > 0.2 * _check_h(h_fn, cc)]
-        if not len(cc):
-            break
-        info["inserted"] += len(cc)
-        interior = np.concatenate([points[ns:], cc])
-        points, cells, surface, _ = conforming_delaunay(surface, interior, config, project_fn)
-        ns = surface.n_points  # recovery may have split surface edges: new surface nodes come first
+        info["inserted"] += len(added)
+        free = np.zeros(len(points), bool)  # later rounds move the new vertices and their neighbours
+        near = np.any(np.isin(cells, added), axis=1)
+        free[cells[near].ravel()] = True
+        free[: surface.n_points] = False
     info["slivers_after"] = int((min_dihedral(points, cells) < angle).sum())
     return points, cells, surface, info
-
-
-def _circumcentres(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    p = points[tets]
-    a = p[:, 1:] - p[:, :1]
-    rhs = 0.5 * np.sum(a * a, axis=-1)
-    det = np.linalg.det(a)
-    ok = np.abs(det) > 1e-300
-    out = np.full((len(tets), 3), np.nan)
-    out[ok] = p[ok, 0] + np.linalg.solve(a[ok], rhs[ok][..., None])[..., 0]
-    return out[ok]

@@ -11,6 +11,7 @@ from jaxmesh._slivers import (
     _edges,
     colour_classes,
     improve_topology,
+    insert_steiner,
     smooth_vertices,
     tet_quality,
 )
@@ -113,3 +114,27 @@ def test_improve_topology_on_a_delaunay_mesh_never_lowers_the_worst_tet():
     q = tet_quality(p[out])
     assert q.min() >= q0.min() and q.min() > 0
     assert abs(signed_volumes(p, out).sum() - signed_volumes(p, c).sum()) < 1e-12
+
+
+def _random_delaunay(k=60, seed=0):
+    """Delaunay of the 27 nodes of a 3^3 grid on the unit cube and k random inner points: has slivers."""
+    rng = np.random.default_rng(seed)
+    g = np.stack(np.meshgrid(*[np.linspace(0, 1, 3)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    pts = np.concatenate([g, rng.uniform(0.1, 0.9, (k, 3))])
+    return pts, _positive(pts, Delaunay(pts).simplices)
+
+
+def test_insert_steiner_splits_slivers_and_respects_protected_faces():
+    pts, cells = _random_delaunay()
+    q0 = cell_quality(pts, cells)
+    bad = np.flatnonzero(q0 < 0.1)
+    assert len(bad)
+    p2, c2, added = insert_steiner(pts, cells, np.zeros(0, np.int64), bad)
+    assert len(added) and np.array_equal(added, np.arange(len(pts), len(p2)))
+    np.testing.assert_array_equal(p2[: len(pts)], pts)
+    assert signed_volumes(p2, c2).min() > 0 and abs(signed_volumes(p2, c2).sum() - 1.0) < 1e-12
+    assert (cell_quality(p2, c2) < 0.1).sum() < len(bad)
+    # with every face of the bad tets protected no cavity may open them: nothing changes
+    faces = cells[bad][:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3)
+    p3, c3, added3 = insert_steiner(pts, cells, np.unique(triangle_keys(faces, len(pts))), bad)
+    assert not len(added3) and np.array_equal(c3, cells) and len(p3) == len(pts)
