@@ -141,10 +141,10 @@ def smooth_vertices(points: np.ndarray, cells: np.ndarray, free: np.ndarray, swe
     return points, moves
 
 
-def _star_eval(points, cells, rows, owner, local, x, k):
-    """Minimum and mean signed quality of each of k stars with its vertex at x (k, 3)."""
-    p = points[cells[rows]]
-    p[np.arange(len(rows)), local] = x[owner]
+def _star_eval(p0, rows_idx, owner, local, x, k):
+    """Minimum and mean signed quality of each of k stars (tets p0 (r, 4, 3)) with its vertex at x (k, 3)."""
+    p = p0.copy()
+    p[rows_idx, local] = x[owner]
     q = tet_quality(p)
     qmin = np.full(k, np.inf)
     np.minimum.at(qmin, owner, q)
@@ -162,7 +162,9 @@ def _smooth_class(points, cells, by, off, edges, deg, verts) -> int:
     rows, owner = _star_rows(by, off, verts)
     local = np.argmax(cells[rows] == verts[owner][:, None], axis=1)
     x0 = points[verts].copy()
-    best_min, best_mean, q = _star_eval(points, cells, rows, owner, local, x0, k)
+    p0, rows_idx = points[cells[rows]], np.arange(len(rows))
+    best_min, best_mean, q = _star_eval(p0, rows_idx, owner, local, x0, k)
+    base_mean = best_mean
     best_x = x0.copy()
     # worst tet of each star, and a length scale (mean edge length from the vertex)
     worst = np.full(k, -1)
@@ -174,7 +176,7 @@ def _smooth_class(points, cells, by, off, edges, deg, verts) -> int:
     scale = np.zeros(k)
     for a, b in ((0, 1), (1, 0)):
         m = pos[edges[:, a]] >= 0
-        np.add.at(scale, pos[edges[m, a]], np.linalg.norm(points[edges[m, a]] - points[edges[m, b]], axis=1))
+        np.add.at(scale, pos[edges[m, a]], _norm(points[edges[m, a]] - points[edges[m, b]]))
     scale /= np.maximum(deg[verts], 1)
     cands = []
     # neighbours' centroid
@@ -184,9 +186,8 @@ def _smooth_class(points, cells, by, off, edges, deg, verts) -> int:
         np.add.at(cen, pos[edges[m, a]], points[edges[m, b]])
     cands.append(cen / np.maximum(deg[verts], 1)[:, None])
     # ODT: volume-weighted circumcentres of the star
-    p = points[cells[rows]]
-    vol = np.abs(np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])))
-    cc = _circumcentres_p(p)
+    vol = np.abs(_six_volumes(p0))
+    cc = _circumcentres_p(p0)
     w = np.bincount(owner, vol, minlength=k)
     odt = np.stack([np.bincount(owner, vol * cc[:, j], minlength=k) for j in range(3)], 1) / np.maximum(w, 1e-300)[:, None]
     cands.append(odt)
@@ -203,17 +204,16 @@ def _smooth_class(points, cells, by, off, edges, deg, verts) -> int:
     g /= np.maximum(np.linalg.norm(g, axis=1), 1e-300)[:, None]
     for step in (0.3, 0.1, 0.03, 0.01):
         cands.append(x0 + step * scale[:, None] * g)
-    gm = np.zeros((k, 3))  # gradient of the star's mean quality
+    gm = np.zeros((k, 3))  # gradient of the star's mean quality (forward differences)
     for j in range(3):
-        for s in (1.0, -1.0):
-            x = x0.copy()
-            x[:, j] += s * eps
-            gm[:, j] += s * _star_eval(points, cells, rows, owner, local, x, k)[1]
+        x = x0.copy()
+        x[:, j] += eps
+        gm[:, j] = _star_eval(p0, rows_idx, owner, local, x, k)[1] - base_mean
     gm /= np.maximum(np.linalg.norm(gm, axis=1), 1e-300)[:, None]
     for step in (0.1, 0.03):
         cands.append(x0 + step * scale[:, None] * gm)
     for x in cands:
-        qmin, qmean, _ = _star_eval(points, cells, rows, owner, local, x, k)
+        qmin, qmean, _ = _star_eval(p0, rows_idx, owner, local, x, k)
         better = (qmin > 0) & (np.minimum(qmin, TAU) >= np.minimum(best_min, TAU)) & (
             W * np.minimum(qmin, TAU) + qmean > W * np.minimum(best_min, TAU) + best_mean + 1e-9)
         best_min = np.where(better, qmin, best_min)
