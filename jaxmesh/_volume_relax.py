@@ -17,7 +17,7 @@ from ._slivers import improve_topology, insert_steiner, min_dihedral, smooth_ver
 from ._surface_mesh import SurfaceMesh
 from ._truss import TrussConfig, make_constraints, relax
 from ._volume import VolumeConfig, _check_h, _make_mesh, conforming_delaunay, delaunay_tets
-from ._volume_recover import distance_to_surface, missing_triangles, triangle_keys
+from ._volume_recover import distance_to_surface, triangle_keys
 
 __all__ = ["relax_volume", "remove_slivers", "grid_size_fn"]
 
@@ -113,7 +113,7 @@ def relax_volume(mesh: Mesh, surface: SurfaceMesh, h_fn: Callable, config: Volum
         vinfo.update({f"relax_recovery_{k}": v for k, v in rinfo.items()})
     meta["times"]["relax"] = time.perf_counter() - t0
     t1 = time.perf_counter()
-    points, cells, surface, sinfo = remove_slivers(points, cells, surface, h_fn, config, project_fn)
+    points, cells, surface, sinfo = remove_slivers(points, cells, surface, config)
     vinfo.update(sinfo)
     meta["times"]["slivers"] = time.perf_counter() - t1
     out = _make_mesh(points, cells, surface, meta)
@@ -149,11 +149,12 @@ def optimise_mesh(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, r
     return points, cells, info
 
 
-def remove_slivers(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, h_fn: Callable,
-                   config: VolumeConfig = VolumeConfig(), project_fn: Callable | None = None):
-    """Quality optimisation (`optimise_mesh`: flips and smoothing), then rounds for the slivers left:
-    Steiner points in local cavities that keep the surface (`insert_steiner`), optimised again near
-    them. Slivers can stay where the surface itself forms them (a tet bounded by surface triangles).
+def remove_slivers(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh,
+                   config: VolumeConfig = VolumeConfig()):
+    """Quality optimisation (`optimise_mesh`: flips and smoothing), then up to config.sliver_passes
+    rounds for the slivers left (dihedral angle below config.sliver_angle): Steiner points in local
+    cavities that keep the surface (`insert_steiner`), optimised again near them. Slivers stay where
+    thin surface triangles force them: every tet on a surface triangle with a small angle is flat.
 
     Returns:
         (points, cells, the SurfaceMesh (unchanged), info {'slivers_before', 'slivers_after', 'inserted',
@@ -163,12 +164,12 @@ def remove_slivers(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, 
     info = {"slivers_before": int((min_dihedral(points, cells) < angle).sum()), "inserted": 0, "opt_flips": 0,
             "opt_moves": 0}
     free = np.arange(len(points)) >= surface.n_points
-    for rnd in range(max(config.sliver_passes, 1)):
+    for rnd in range(config.sliver_passes + 1):
         points, cells, oinfo = optimise_mesh(points, cells, surface, free=free)
         for k, v in oinfo.items():
             info[k] += v
         bad = np.flatnonzero(min_dihedral(points, cells) < angle)
-        if not len(bad) or rnd == config.sliver_passes - 1:
+        if not len(bad) or rnd == config.sliver_passes:
             break
         protected = np.unique(triangle_keys(surface.triangles, len(points)))
         points, cells, added = insert_steiner(points, cells, protected, bad)
