@@ -103,6 +103,7 @@ def _star_rows(by: np.ndarray, off: np.ndarray, verts: np.ndarray) -> tuple[np.n
 
 
 def _circumcentres_p(p: np.ndarray) -> np.ndarray:
+    """Circumcentres of tets p (m, 4, 3); a flat tet gives a finite but meaningless point."""
     a = p[:, 1:] - p[:, :1]
     rhs = 0.5 * np.sum(a * a, axis=-1)
     det = np.linalg.det(a)
@@ -112,12 +113,13 @@ def _circumcentres_p(p: np.ndarray) -> np.ndarray:
 
 def smooth_vertices(points: np.ndarray, cells: np.ndarray, free: np.ndarray, sweeps: int = 4,
                     seed: int = 0) -> tuple[np.ndarray, int]:
-    """Move free vertices to raise the worst quality of their stars (fixed topology).
+    """Move free vertices to raise the worst and the mean quality of their stars (fixed topology).
 
     Per vertex the candidates are its neighbours' centroid, the volume-weighted circumcentre of its
-    star (ODT), steps up the gradient of its worst tet and up the gradient of the star's mean. A candidate is taken when it raises the
-    star's minimum quality, or keeps it and raises the star's mean; every tet stays positive.
-    Sets of vertices that share no tet move together (`colour_classes`).
+    star (ODT), steps up the gradient of its worst tet and up the gradient of the star's mean. The
+    best candidate by W min(q_min, TAU) + q_mean of the star is taken when min(q_min, TAU) does not
+    drop and every tet stays positive. Sets of vertices that share no tet move together
+    (`colour_classes`).
 
     Args:
         points: (n, 3); cells: (m, 4) positive tets; free: (n,) bool movable vertices; sweeps: passes.

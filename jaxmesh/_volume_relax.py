@@ -128,9 +128,11 @@ def _face_keys(cells: np.ndarray, n: int) -> np.ndarray:
     return triangle_keys(cells[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), n)
 
 
-def optimise_mesh(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, rounds: int = 3,
-                  threshold: float = 0.7, free: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Rounds of flips (`improve_topology`) then smoothing of the interior nodes (`smooth_vertices`).
+def optimise_mesh(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, rounds: int = 5,
+                  threshold: float = 0.7, free: np.ndarray | None = None,
+                  min_gain: float = 1e-3) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Rounds of flips (`improve_topology`) then smoothing of the interior nodes (`smooth_vertices`),
+    until a round raises the mean quality by less than min_gain.
 
     Flips first: the conforming Delaunay's slivers are mostly fixed by edge removals, and smoothing
     then works on a better topology. Surface triangles and surface nodes never change.
@@ -138,13 +140,16 @@ def optimise_mesh(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, r
     if free is None:
         free = np.arange(len(points)) >= surface.n_points
     protected = np.unique(triangle_keys(surface.triangles, len(points)))
-    info = {"opt_flips": 0, "opt_moves": 0}
+    info = {"opt_flips": 0, "opt_moves": 0, "opt_rounds": 0}
+    mean = cell_quality(points, cells).mean()
     for rnd in range(rounds):
-        cells, flipped = improve_topology(points, cells, protected, threshold)
+        cells, flipped = improve_topology(points, cells, protected, threshold, passes=2)
         points, moved = smooth_vertices(points, cells, free, sweeps=2, seed=rnd)
         info["opt_flips"] += flipped
         info["opt_moves"] += moved
-        if not flipped and rnd:
+        info["opt_rounds"] += 1
+        prev, mean = mean, cell_quality(points, cells).mean()
+        if mean - prev < min_gain:
             break
     return points, cells, info
 
@@ -162,7 +167,7 @@ def remove_slivers(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh,
     """
     angle = config.sliver_angle
     info = {"slivers_before": int((min_dihedral(points, cells) < angle).sum()), "inserted": 0, "opt_flips": 0,
-            "opt_moves": 0}
+            "opt_moves": 0, "opt_rounds": 0}
     free = np.arange(len(points)) >= surface.n_points
     for rnd in range(config.sliver_passes + 1):
         points, cells, oinfo = optimise_mesh(points, cells, surface, free=free)
