@@ -295,13 +295,27 @@ def _edge_candidates(points, cells, q, edges, protected, tkeys, towner):
         down = np.concatenate([tri[..., [0, 2, 1]], np.broadcast_to(p[:, None, None], (k, c, 1))], -1)
         score = np.minimum(tet_quality(points[up.reshape(-1, 4)]), tet_quality(points[down.reshape(-1, 4)]))
         qual = score.reshape(k, c)[:, index].min(axis=2)  # (k, triangulations)
-        best = np.argmax(qual, axis=1)
-        gain = qual[np.arange(k), best] - q[ring_tets].min(axis=1)
-        good = np.flatnonzero(gain > 1e-9)
-        chosen = index[best[good]]  # (g, size - 2) triangle ids
-        tets = np.concatenate([up[good[:, None], chosen], down[good[:, None], chosen]], axis=1)
-        out.append((gain[good], ring_tets[good], tets))
+        chosen = index[np.argmax(qual, axis=1)]  # (k, size - 2) triangle ids of the max-min triangulation
+        rows = np.arange(k)[:, None]
+        tets = np.concatenate([up[rows, chosen], down[rows, chosen]], axis=1)
+        gain = _flip_gain(q[ring_tets], tet_quality(points[tets.reshape(-1, 4)]).reshape(k, -1), q.mean())
+        good = gain > 0
+        out.append((gain[good], ring_tets[good], tets[good]))
     return out
+
+
+def _flip_gain(old: np.ndarray, new: np.ndarray, qbar: float) -> np.ndarray:
+    """Gain of replacing tets of qualities old (k, a) by new (k, b); <= 0 means no.
+
+    Where the worst old tet is below TAU the worst must rise (gain 1 + rise: these go first);
+    otherwise the worst must stay above TAU and the mesh's mean quality must rise: the new tets'
+    sum exceeds the old one's by more than qbar (the current mean) per added tet.
+    """
+    old_min, new_min = old.min(axis=1), new.min(axis=1)
+    rise = new_min - old_min
+    dsum = new.sum(axis=1) - old.sum(axis=1) - (new.shape[1] - old.shape[1]) * qbar
+    return np.where(old_min < TAU, np.where(rise > 1e-9, 1.0 + rise, -1.0),
+                    np.where((new_min >= TAU) & (dsum > 1e-9), dsum, -1.0))
 
 
 def _protected_rows(faces: np.ndarray, protected: np.ndarray, n: int) -> np.ndarray:
@@ -355,10 +369,9 @@ def _face_candidates(points, cells, q, bad, protected, fkeys, fowner):
                      np.stack([f[:, 2], f[:, 0], apex, other], 1)], 1)  # (k, 3, 4)
     neg = _six_volumes(points[cand[:, 0]]) < 0
     cand[neg] = cand[neg][:, :, [1, 0, 2, 3]]  # the three share the orientation when apex-other crosses the face
-    qual = tet_quality(points[cand.reshape(-1, 4)]).reshape(-1, 3).min(axis=1)
     pair = np.stack([t, nb], 1)
-    gain = qual - q[pair].min(axis=1)
-    good = gain > 1e-9
+    gain = _flip_gain(q[pair], tet_quality(points[cand.reshape(-1, 4)]).reshape(-1, 3), q.mean())
+    good = gain > 0
     return gain[good], pair[good], cand[good]
 
 
@@ -368,7 +381,8 @@ def improve_topology(points: np.ndarray, cells: np.ndarray, protected: np.ndarra
 
     Candidates are evaluated for all bad tets at once; the best gains are applied first, each only
     when none of its tets was removed by an earlier one in the pass (then its ring is unchanged).
-    A change must raise the worst quality of the tets it replaces; faces that are surface triangles
+    A change must raise the worst quality of the tets it replaces, or, where that is above TAU
+    already, raise the mean quality of the mesh (`_flip_gain`). Faces that are surface triangles
     (protected keys, `triangle_keys`) are never removed.
 
     Returns:
