@@ -29,6 +29,7 @@ from ._surface_ops import (
     triangle_cells,
 )
 from ._truss import TrussConfig, make_constraints, phi_and_grad, relax
+from ._truss._constraints import newton_damping
 from ._truss._topology import bucket_capacity
 from .geometry._microstructure import evaluate
 
@@ -119,9 +120,10 @@ def evaluate_size(h_fn, points: np.ndarray) -> np.ndarray:
 def _newton(phi_fn, pts, locked, n_iter: int):
     def body(p, _):
         phi, g = phi_and_grad(phi_fn, p)
+        damping = newton_damping(g)
         g = jnp.where(locked, 0.0, g)
         sq = jnp.sum(g * g, axis=-1)
-        step = jnp.where(sq > 0, phi / jnp.where(sq > 0, sq, 1.0), 0.0)
+        step = jnp.where(sq > 0, damping * phi / jnp.where(sq > 0, sq, 1.0), 0.0)
         return p - step[:, None] * g, None
 
     p, _ = jax.lax.scan(body, pts, None, length=n_iter)
@@ -336,6 +338,9 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
     on_plane = np.zeros(pts.shape, bool)
     pts, tris, on_plane = improve(pts, tris, on_plane, phi_fn, h_fn, box, config, cut=False)
     L = np.asarray(box, float)
+    if (pts.min(0) < lower - 0.25 * L).any() or (pts.max(0) > upper + 0.25 * L).any():
+        raise MeshingError("surfaces", "surface nodes left the inclusion's neighbourhood during relaxation "
+                           "(a degenerate level set? check the input near this inclusion)", inclusion.id)
     crosses = (np.floor(pts.min(0) / L) != np.floor(pts.max(0) / L)).any()
     if crosses:
         for _ in range(3):

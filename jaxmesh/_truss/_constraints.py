@@ -23,6 +23,7 @@ __all__ = [
     "make_constraints",
     "average_periodic",
     "filter_forces",
+    "newton_damping",
     "project_to_surface",
     "impose_periodicity",
     "truss_step",
@@ -244,6 +245,12 @@ def filter_forces(
     return jnp.where(constraints.fixed[:, None], 0.0, f)
 
 
+def newton_damping(grad: Float[Array, "n d"]) -> Float[Array, " n"]:
+    """Factor min(1, 2 |grad phi|) on a Newton step: a distance-like field has |grad| ~ 1, and
+    near a saddle of the interpolated field (|grad| -> 0) a full step could jump to a periodic image."""
+    return jnp.minimum(1.0, 2.0 * jnp.sqrt(jnp.sum(grad * grad, axis=-1)))
+
+
 def project_to_surface(
     points: Float[Array, "n d"],
     constraints: NodeConstraints,
@@ -259,10 +266,11 @@ def project_to_surface(
     move = constraints.on_surface & ~constraints.fixed
     for _ in range(n_newton):
         phi, g = phi_and_grad(phi_fn, points, phi_params, mask=move)
+        damping = newton_damping(g)
         g = jnp.where(constraints.locked_axes, 0.0, g)
         sq = jnp.sum(g * g, axis=-1)
         ok = move & (sq > 0)
-        step = jnp.where(ok, phi / jnp.where(ok, sq, 1.0), 0.0)
+        step = jnp.where(ok, damping * phi / jnp.where(ok, sq, 1.0), 0.0)
         points = points - step[:, None] * g
     return points
 
