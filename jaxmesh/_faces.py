@@ -226,10 +226,13 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig(),
     tris, sides, kinds = [], [], []
     for inc in microstructure.inclusions:
         out = mesh_inclusion(inc, h_fn, box, config)
-        ids = reg.add(out["points"], inc.id)
-        tris.append(ids[out["triangles"]])
-        sides.append(np.tile([inc.id, 0], (len(out["triangles"]), 1)))
-        kinds.append(np.full(len(out["triangles"]), INTERFACE))
+        t = reg.add(out["points"], inc.id)[out["triangles"]]
+        # pieces cut at a box edge can share a point: (a, a, b) has zero area, and dropping it
+        # leaves the edge a-b in its two neighbours
+        t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])]
+        tris.append(t)
+        sides.append(np.tile([inc.id, 0], (len(t), 1)))
+        kinds.append(np.full(len(t), INTERFACE))
     t1 = time.perf_counter()
     iface = np.vstack(tris) if tris else np.zeros((0, 3), np.int64)
     P = reg.array()

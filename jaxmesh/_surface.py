@@ -16,6 +16,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from ._errors import MeshingError
@@ -285,12 +286,23 @@ def cut_by_box(points, tris, on_plane, phi_fn, box, h_fn, config: SurfaceConfig)
                 flags[:, a] = True
                 q, phi, _ = project(phi_fn, moved, flags, config.newton_steps)
                 good = (np.abs(phi) < 1e-9 * tol) & (np.linalg.norm(q - old, axis=1) < 2 * tol)
+                good &= _clear_of_others(points, cand, q, 0.25 * tol)
                 points[cand[good]] = q[good]
                 on_plane[cand[good]] = flags[good]
             points, tris, on_plane, new = cut_plane(points, tris, on_plane, a, value)
             if new.size:
                 points[new], _, _ = project(phi_fn, points[new], on_plane[new], config.newton_steps)
     return points, tris, on_plane
+
+
+def _clear_of_others(points: np.ndarray, cand: np.ndarray, q: np.ndarray, radius: float) -> np.ndarray:
+    """(k,) bool: snapped positions q of vertices cand that stay radius away from every other vertex
+    and from each other (two vertices snapped onto one box-edge point would merge into one node)."""
+    others = np.delete(points, cand, axis=0)
+    ok = cKDTree(others).query(q)[0] > radius if len(others) else np.ones(len(q), bool)
+    for i, j in cKDTree(q).query_pairs(radius):
+        ok[max(i, j)] = False
+    return ok
 
 
 def wrap_pieces(points, tris, on_plane, box):

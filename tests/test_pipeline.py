@@ -11,6 +11,7 @@ from jaxmesh import (
     quality_report,
     random_inclusions,
     sample_levelset,
+    sphere_sdf,
     validate,
 )
 from jaxmesh._quality import signed_volumes
@@ -58,6 +59,16 @@ def test_single_sphere_cases(name):
     _check(mesh, ms, specs)
     q = quality_report(mesh)
     assert q["q_min"] > 0.0 and q["q_mean"] > 0.6
+
+
+def test_sphere_pole_on_a_box_edge():
+    # the pole (0, 0, 0.25) lies on the box edge x = y = 0: two cut vertices once met there and
+    # merged into a zero-area triangle that no tetrahedralisation holds
+    specs = [_sphere((0.0, 0.0, 0.1), 0.15), _sphere((0.5, 0.5, 0.5), 0.25)]
+    ms = Microstructure.from_functions([sphere_sdf(s.center, float(s.axes[0])) for s in specs], (1.0, 1.0, 1.0),
+                                       (24, 24, 24))
+    mesh = mesh_rve(ms, MeshConfig(h=0.12))
+    _check(mesh, ms, specs, volume_tol=0.1)
 
 
 def test_two_spheres_one_grid_step_apart():
