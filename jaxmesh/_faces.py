@@ -11,20 +11,25 @@ from __future__ import annotations
 import time
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.spatial import cKDTree
 
+from ._contours import edge_parameters
 from ._errors import MeshingError
 from ._intersect import intersecting_pairs
 from ._surface import SurfaceConfig, as_size_fn, mesh_inclusion
 from ._surface_mesh import BOX_FACE, INTERFACE, OUTSIDE, SurfaceMesh
 from ._triangulate2d import (
+    circumcenters,
     component_labels,
     constrained_delaunay,
     distance_to_segments,
     flood_fill,
     improve_by_flips,
     missing_segments,
+    triangle_angles,
 )
 from ._truss import make_constraints, relax
 
@@ -57,36 +62,86 @@ class _Registry:
 
 
 class FaceSize(eqx.Module):
-    """A 3D size function restricted to the face x_axis = 0, as a function of the in-plane (b, c)."""
+    """A 3D size function restricted to the face x_axis = 0, as a function of the in-plane (b, c),
+    capped by the spacing of the fixed nodes (traces, box edges) grown at rate ``grad``: next to a
+    trace whose nodes are closer than h, the face triangles match the trace instead of fanning out."""
 
     h_fn: object
+    nodes: jax.Array  # (k, 2) fixed nodes (padded far away)
+    spacing: jax.Array  # (k,) local segment length at each node
+    grad: float
     axis: int = eqx.field(static=True)
 
     def __call__(self, uv):
-        a, b, c = self.axis, (self.axis + 1) % 3, (self.axis + 2) % 3
+        b, c = (self.axis + 1) % 3, (self.axis + 2) % 3
         p = jnp.zeros((uv.shape[0], 3), uv.dtype).at[:, b].set(uv[:, 0]).at[:, c].set(uv[:, 1])
-        del a
-        return jnp.reshape(self.h_fn(p), uv.shape[:1])
+        h = jnp.reshape(self.h_fn(p), uv.shape[:1])
+        d = jnp.sqrt(jnp.sum((uv[:, None, :] - self.nodes[None]) ** 2, axis=-1) + 1e-300)
+        return jnp.minimum(h, jnp.min(self.spacing[None] + self.grad * d, axis=1))
 
 
-def _edge_values(P: np.ndarray, axis: int, box, h_fn) -> np.ndarray:
+def node_spacing(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """(n,) mean length of the segments at each node (inf where none)."""
+    length = np.linalg.norm(points[segments[:, 0]] - points[segments[:, 1]], axis=1)
+    total = np.bincount(segments.reshape(-1), np.repeat(length, 2), minlength=len(points))
+    count = np.bincount(segments.reshape(-1), minlength=len(points))
+    return np.where(count > 0, total / np.maximum(count, 1), np.inf)
+
+
+def _face_size(h_fn, axis: int, uv: np.ndarray, spacing: np.ndarray, grad: float) -> FaceSize:
+    """FaceSize padded to a power-of-two node count (one compilation serves several faces)."""
+    keep = np.isfinite(spacing)
+    uv, spacing = uv[keep], spacing[keep]
+    size = max(64, 1 << max(len(uv) - 1, 0).bit_length())
+    nodes = np.vstack([uv, np.full((size - len(uv), 2), 1e6)])
+    sp = np.concatenate([spacing, np.full(size - len(uv), 1e6)])
+    return FaceSize(h_fn, jnp.asarray(nodes), jnp.asarray(sp), float(grad), axis)
+
+
+def trace_spacing(P: np.ndarray, iface_tris: np.ndarray, box) -> tuple[np.ndarray, np.ndarray]:
+    """Trace nodes (interface nodes on a box plane) and the mean length of their trace segments."""
+    L = np.asarray(box, float)
+    e = np.concatenate([iface_tris[:, [0, 1]], iface_tris[:, [1, 2]], iface_tris[:, [2, 0]]])
+    pu, pv = P[e[:, 0]], P[e[:, 1]]
+    same = ((pu == 0.0) & (pv == 0.0)) | ((pu == L) & (pv == L))
+    seg = e[same.any(axis=1)]
+    sp = node_spacing(P, seg)
+    nodes = np.flatnonzero(np.isfinite(sp))
+    return nodes, sp[nodes]
+
+
+def _line_size(h_fn, box, nodes: np.ndarray, spacing: np.ndarray, grad: float):
+    """NumPy size along the box edges: h capped by the trace spacing grown at rate grad, with
+    periodic distances (the four parallel edges are one edge)."""
+    L = np.asarray(box, float)
+
+    def size(p):
+        h = np.asarray(h_fn(jnp.asarray(p)), float).reshape(-1)
+        if len(nodes) == 0:
+            return h
+        d = nodes[None] - p[:, None]
+        d -= L * np.round(d / L)
+        return np.minimum(h, np.min(spacing[None] + grad * np.linalg.norm(d, axis=-1), axis=1))
+
+    return size
+
+
+def _edge_values(P: np.ndarray, axis: int, box, size) -> np.ndarray:
     """Sorted coordinates of the nodes of the master box edge along ``axis``: 0, L, the interface
-    crossings of the edge lines, and equal subdivisions of size ~h between them."""
+    crossings of the edge lines, and nodes ~size apart between them (size: NumPy (m, 3) -> (m,))."""
     L = np.asarray(box, float)
     o = [k for k in range(3) if k != axis]
     on = np.ones(len(P), bool)
     for k in o:
         on &= (P[:, k] == 0.0) | (P[:, k] == L[k])
     breaks = np.unique(np.concatenate([[0.0, L[axis]], P[on, axis]]))
-    vals = [breaks[:1]]
-    for lo, hi in zip(breaks[:-1], breaks[1:]):
-        mid = np.zeros((1, 3))
-        mid[0, axis] = 0.5 * (lo + hi)
-        h = float(np.asarray(h_fn(jnp.asarray(mid)))[0])
-        m = max(1, int(round((hi - lo) / h)))
-        inner = lo + (hi - lo) * np.arange(1, m) / m
-        vals += [inner, [hi]]
-    return np.concatenate(vals)
+
+    def line_point(t):
+        q = np.zeros((len(t), 3))
+        q[:, axis] = t
+        return q
+
+    return edge_parameters(breaks, line_point, size)
 
 
 def _lattice(box2, h: float) -> np.ndarray:
@@ -98,7 +153,95 @@ def _lattice(box2, h: float) -> np.ndarray:
     return np.vstack(rows) if rows else np.zeros((0, 2))
 
 
-def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn, config: SurfaceConfig, rng):
+def _interior_nodes(uv_fixed, seg, h2, box2, clearance: float) -> np.ndarray:
+    """Face interior nodes ~h2 apart: a fine lattice thinned greedily (finest h first), each kept
+    node at least 0.8 h from the kept and fixed nodes and clearance * h from the segments."""
+    hmin = float(np.min(np.asarray(h2(jnp.asarray(np.vstack([uv_fixed, _lattice(box2, min(box2) / 8)]))))))
+    cand = _lattice(box2, 0.4 * hmin)
+    if len(cand) == 0:
+        return cand
+    hc = np.asarray(h2(jnp.asarray(cand)))
+    d = distance_to_segments(cand, uv_fixed, seg, 0.1 * hmin)
+    ok = d > clearance * hc
+    dn, _ = cKDTree(uv_fixed).query(cand)
+    ok &= dn > 0.8 * hc
+    cand, hc = cand[ok], hc[ok]
+    order = np.lexsort((cand[:, 1], cand[:, 0], np.round(hc / (0.05 * hmin))))
+    cell = 0.8 * hmin
+    grid: dict = {}
+    kept = []
+    for i in order:
+        p, r2, m = cand[i], (0.8 * hc[i]) ** 2, int(np.ceil(0.8 * hc[i] / cell))
+        k0, k1 = int(p[0] // cell), int(p[1] // cell)
+        near = [j for kx in range(k0 - m, k0 + m + 1) for ky in range(k1 - m, k1 + m + 1) for j in grid.get((kx, ky), ())]
+        if not near or np.min(np.sum((cand[near] - p) ** 2, axis=1)) >= r2:
+            grid.setdefault((k0, k1), []).append(i)
+            kept.append(i)
+    return cand[np.sort(np.asarray(kept, np.int64))]
+
+
+def _encroached(pts: np.ndarray, nodes: np.ndarray, seg: np.ndarray) -> np.ndarray:
+    """(m,) bool: points inside the diametral circle of a segment."""
+    a, b = nodes[seg[:, 0]], nodes[seg[:, 1]]
+    mid, rad = 0.5 * (a + b), 0.5 * np.linalg.norm(b - a, axis=1)
+    out = np.zeros(len(pts), bool)
+    for i, hit in enumerate(cKDTree(mid).query_ball_point(pts, float(rad.max()) * (1 + 1e-9))):
+        out[i] = any(np.linalg.norm(pts[i] - mid[s]) < rad[s] for s in hit)
+    return out
+
+
+def _refine_face(uv, tri, seg, nf: int, h2, box2, min_angle: float, rounds: int = 6):
+    """Delaunay refinement of a face: circumcentres of triangles below min_angle are inserted where
+    they stay in the box, do not encroach a constrained segment (the traces are fixed here: they
+    cannot be split) and keep 0.3 h from every node; then flips and a smoothing of the free nodes."""
+    box = np.asarray(box2, float)
+    for _ in range(rounds):
+        bad = np.flatnonzero(triangle_angles(uv, tri).min(axis=1) < min_angle)
+        if bad.size == 0:
+            break
+        cc = circumcenters(uv[tri[bad]])
+        cc = cc[np.all((cc > 0) & (cc < box), axis=1)]
+        if len(cc):
+            hc = np.asarray(h2(jnp.asarray(cc)))
+            d, _ = cKDTree(uv).query(cc)
+            ok = (d > 0.3 * hc) & ~_encroached(cc, uv[:nf], seg)
+            cc, hc = cc[ok], hc[ok]
+        keep = []
+        for i in range(len(cc)):  # one node per cluster of nearby circumcentres
+            if all(np.linalg.norm(cc[i] - cc[j]) > 0.5 * hc[i] for j in keep):
+                keep.append(i)
+        if not keep:
+            break
+        uv = np.vstack([uv, cc[keep]])
+        tri, _ = improve_by_flips(uv, constrained_delaunay(uv, seg), seg)
+        uv = _smooth(uv, tri, nf)
+        tri, _ = improve_by_flips(uv, tri, seg)
+    return uv, tri
+
+
+def _smooth(uv, tri, nf: int, iters: int = 5):
+    """Laplacian smoothing of the free nodes; a move is kept only where no triangle of the star
+    inverts and its smallest angle does not drop (so a node never crosses a segment)."""
+    uv = uv.copy()
+    stars = [[] for _ in range(len(uv))]
+    for t, row in enumerate(tri.tolist()):
+        for v in row:
+            stars[v].append(t)
+    for _ in range(iters):
+        for v in range(nf, len(uv)):
+            star = tri[stars[v]]
+            nb = np.unique(star)
+            old = uv[v].copy()
+            a0 = triangle_angles(uv, star).min()
+            uv[v] = uv[nb[nb != v]].mean(axis=0)
+            p = uv[star]
+            e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+            if (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0] <= 0).any() or triangle_angles(uv, star).min() < a0:
+                uv[v] = old
+    return uv
+
+
+def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn, config: SurfaceConfig):
     """Mesh the master face x_axis = 0 and its copy at L; returns (triangles (m, 3), sides (m, 2))."""
     L = np.asarray(ms.box, float)
     a, b, c = axis, (axis + 1) % 3, (axis + 2) % 3
@@ -138,14 +281,8 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
     seg = seg[seg[:, 0] != seg[:, 1]]
     uv_fixed = P[face][:, [b, c]]
     box2 = (L[b], L[c])
-    h2 = FaceSize(h_fn, axis)
-    hmin = float(np.min(np.asarray(h2(jnp.asarray(np.vstack([uv_fixed, _lattice(box2, min(box2) / 8)]))))))
-    lat = _lattice(box2, hmin)
-    if len(lat):
-        hl = np.asarray(h2(jnp.asarray(lat)))
-        lat = lat[rng.random(len(lat)) < (hmin / hl) ** 2]
-        d = distance_to_segments(lat, uv_fixed, seg, 0.1 * hmin)
-        lat = lat[d > config.face_clearance * np.asarray(h2(jnp.asarray(lat)))]
+    h2 = _face_size(h_fn, axis, uv_fixed, node_spacing(uv_fixed, seg), config.trace_grading)
+    lat = _interior_nodes(uv_fixed, seg, h2, box2, config.face_clearance)
     uv = np.vstack([uv_fixed, lat])
     nf = len(uv_fixed)
     tri_fn = lambda p: constrained_delaunay(p, seg)  # noqa: E731
@@ -156,6 +293,8 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
         uv[:nf] = uv_fixed
     tri = tri_fn(uv)
     tri, _ = improve_by_flips(uv, tri, seg)
+    uv, tri = _refine_face(uv, tri, seg, nf, h2, box2, config.face_min_angle)
+    lat = uv[nf:]
     if missing_segments(tri, seg, len(uv)).any():
         raise MeshingError("faces", f"face {axis}: constrained segments missing from the face triangulation")
     ncomp, comp = flood_fill(tri, seg, len(uv))
@@ -195,13 +334,13 @@ def _periodic_pairs(reg: _Registry, box) -> dict[int, np.ndarray]:
     return out
 
 
-def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig(), seed: int = 0) -> SurfaceMesh:
+def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig()) -> SurfaceMesh:
     """Closed, periodic surface mesh of a 3D RVE: inclusion interfaces cut by the box plus box faces.
 
     Args:
         microstructure: a periodic 3D Microstructure (geometry.Microstructure).
         h: target edge length, a float > 0 or a JAX size callable points (m, 3) -> (m,) (e.g. a SizeField).
-        config: SurfaceConfig. seed: seed of the face-node thinning (variable h).
+        config: SurfaceConfig (the face nodes are deterministic: no seed).
     Returns:
         SurfaceMesh: interface triangles sides (k, 0), box-face triangles (region, OUTSIDE), periodic pairs.
     Raises:
@@ -236,10 +375,11 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig(),
     t1 = time.perf_counter()
     iface = np.vstack(tris) if tris else np.zeros((0, 3), np.int64)
     P = reg.array()
-    edge_vals = [_edge_values(P, a, box, h_fn) for a in range(3)]
-    rng = np.random.default_rng(seed)
+    tnodes, tsp = trace_spacing(P, iface, box)
+    line_size = _line_size(h_fn, box, P[tnodes], tsp, config.trace_grading)
+    edge_vals = [_edge_values(P, a, box, line_size) for a in range(3)]
     for a in range(3):
-        ft, fs = _mesh_face(a, reg, iface, edge_vals, microstructure, h_fn, config, rng)
+        ft, fs = _mesh_face(a, reg, iface, edge_vals, microstructure, h_fn, config)
         tris.append(ft)
         sides.append(fs)
         kinds.append(np.full(len(ft), BOX_FACE))

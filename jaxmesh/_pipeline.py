@@ -177,7 +177,7 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
         values = np.asarray(field.values)
         t = stage("size", t, f"h in [{values.min():.4f}, {values.max():.4f}]")
 
-    surface = mesh_surfaces(ms, h_jax, seed=config.seed)
+    surface = mesh_surfaces(ms, h_jax)
     t = stage("surfaces", t, f"{surface.n_points} nodes, {surface.n_triangles} triangles")
 
     interior = _interior_nodes(ms, h_np, config)

@@ -50,6 +50,11 @@ class SurfaceConfig:
         face_truss: TrussConfig of the 2D box-face relaxations.
         face_clearance: face interior nodes closer than face_clearance * h to a constrained
             segment are dropped before the face triangulation.
+        trace_grading: on the box faces, h is capped by the trace (and box-edge) node spacing
+            plus trace_grading times the distance to that node, so that face triangles next to a
+            trace match its spacing.
+        face_min_angle: box-face triangles below this angle (degrees) get a circumcentre inserted
+            (Delaunay refinement) when it does not encroach on a trace or box edge.
         check_intersections: run the triangle-triangle self-intersection check at the end.
     """
 
@@ -61,10 +66,12 @@ class SurfaceConfig:
     truss: TrussConfig = TrussConfig(dt=0.2, max_iterations=40, max_retriangulations=4, newton_steps=3)
     face_truss: TrussConfig = TrussConfig(dt=0.2, max_iterations=40, max_retriangulations=4)
     face_clearance: float = 0.6
+    trace_grading: float = 0.3
+    face_min_angle: float = 25.0
     check_intersections: bool = True
 
     def __post_init__(self):
-        for name in ("mc_step", "refine_ratio", "face_clearance"):
+        for name in ("mc_step", "refine_ratio", "face_clearance", "trace_grading"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 raise ValueError(f"SurfaceConfig.{name}: expected a finite number > 0, got {v!r}.")

@@ -425,7 +425,7 @@ def triangle_angles(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return out
 
 
-def _circumcenters(p: np.ndarray) -> np.ndarray:
+def circumcenters(p: np.ndarray) -> np.ndarray:
     a, b, c = p[:, 0], p[:, 1], p[:, 2]
     ba, ca = b - a, c - a
     d = 2.0 * (ba[:, 0] * ca[:, 1] - ba[:, 1] * ca[:, 0])
@@ -496,7 +496,7 @@ def refine_bad_triangles(
             break
         stats["rounds"] += 1
         order = np.argsort(ang[bad, k[bad]])  # worst first
-        cc = _circumcenters(p[bad][order])
+        cc = circumcenters(p[bad][order])
         rad = np.linalg.norm(cc - p[bad][order][:, 0], axis=1)
         # encroachment: inside the diametral circle of a segment
         a, b = pslg.points[pslg.segments[:, 0]], pslg.points[pslg.segments[:, 1]]

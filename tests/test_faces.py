@@ -106,8 +106,9 @@ def test_quality(rve):
     a = min_angles(m.points, m.triangles)
     assert q[m.kind == INTERFACE].mean() >= 0.85
     assert q[m.kind == BOX_FACE].mean() >= 0.85
+    assert a[m.kind == BOX_FACE].min() >= 20.0
     assert np.quantile(a, 0.01) >= 20.0
-    assert a.min() >= 10.0  # known gap: the issue asks 20 degrees everywhere (see the report)
+    assert a.min() >= 10.0  # known gap: interface triangles at traces of random RVEs reach ~17 degrees
 
 
 def test_bad_input():
