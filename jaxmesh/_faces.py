@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from ._contours import edge_parameters
 from ._errors import MeshingError
 from ._intersect import intersecting_pairs
+from ._octree import periodic_octree_nodes
 from ._surface import SurfaceConfig, as_size_fn, mesh_inclusion
 from ._surface_mesh import BOX_FACE, INTERFACE, OUTSIDE, SurfaceMesh
 from ._triangulate2d import (
@@ -32,6 +33,7 @@ from ._triangulate2d import (
     triangle_angles,
 )
 from ._truss import make_constraints, relax
+from .geometry._grid import interpolate_linear
 
 
 class _Registry:
@@ -63,21 +65,21 @@ class _Registry:
 
 class FaceSize(eqx.Module):
     """A 3D size function restricted to the face x_axis = 0, as a function of the in-plane (b, c),
-    capped by the spacing of the fixed nodes (traces, box edges) grown at rate ``grad``: next to a
-    trace whose nodes are closer than h, the face triangles match the trace instead of fanning out."""
+    capped by the spacing of the fixed nodes (traces, box edges) grown at a gradient: next to a
+    trace whose nodes are closer than h, the face triangles match the trace instead of fanning out.
+    The cap is sampled on a periodic grid of the face (a dense node-to-point distance matrix does
+    not fit in memory for RVEs with thousands of trace nodes)."""
 
     h_fn: object
-    nodes: jax.Array  # (k, 2) fixed nodes (padded far away)
-    spacing: jax.Array  # (k,) local segment length at each node
-    grad: float
+    cap: jax.Array  # (nb, nc) node-centred periodic samples of the cap over the face
+    box2: tuple = eqx.field(static=True)
     axis: int = eqx.field(static=True)
 
     def __call__(self, uv):
         b, c = (self.axis + 1) % 3, (self.axis + 2) % 3
         p = jnp.zeros((uv.shape[0], 3), uv.dtype).at[:, b].set(uv[:, 0]).at[:, c].set(uv[:, 1])
         h = jnp.reshape(self.h_fn(p), uv.shape[:1])
-        d = jnp.sqrt(jnp.sum((uv[:, None, :] - self.nodes[None]) ** 2, axis=-1) + 1e-300)
-        return jnp.minimum(h, jnp.min(self.spacing[None] + self.grad * d, axis=1))
+        return jnp.minimum(h, interpolate_linear(self.cap.astype(uv.dtype), self.box2, uv))
 
 
 def node_spacing(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
@@ -88,14 +90,22 @@ def node_spacing(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
     return np.where(count > 0, total / np.maximum(count, 1), np.inf)
 
 
-def _face_size(h_fn, axis: int, uv: np.ndarray, spacing: np.ndarray, grad: float) -> FaceSize:
-    """FaceSize padded to a power-of-two node count (one compilation serves several faces)."""
+def _face_size(h_fn, axis: int, uv: np.ndarray, spacing: np.ndarray, grad: float, box2) -> FaceSize:
+    """FaceSize with the cap min_j (spacing_j + grad |x - x_j|) sampled at half the finest spacing
+    (at most 1024 samples per side); the k nearest nodes stand in for all of them."""
     keep = np.isfinite(spacing)
     uv, spacing = uv[keep], spacing[keep]
-    size = max(64, 1 << max(len(uv) - 1, 0).bit_length())
-    nodes = np.vstack([uv, np.full((size - len(uv), 2), 1e6)])
-    sp = np.concatenate([spacing, np.full(size - len(uv), 1e6)])
-    return FaceSize(h_fn, jnp.asarray(nodes), jnp.asarray(sp), float(grad), axis)
+    box2 = tuple(float(v) for v in box2)
+    finest = float(spacing.min()) if len(spacing) else max(box2)
+    n = [int(np.clip(np.ceil(2 * L / finest), 8, 1024)) for L in box2]
+    grid = np.stack(np.meshgrid(*[np.arange(k) * L / k for k, L in zip(n, box2)], indexing="ij"), -1).reshape(-1, 2)
+    if len(uv):
+        k = min(8, len(uv))
+        d, j = cKDTree(uv).query(grid, k=k)
+        cap = np.min(np.reshape(spacing[j] + grad * d, (len(grid), k)), axis=1).reshape(n)
+    else:
+        cap = np.full(n, np.inf)
+    return FaceSize(h_fn, jnp.asarray(np.minimum(cap, 1e6)), box2, axis)
 
 
 def trace_spacing(P: np.ndarray, iface_tris: np.ndarray, box) -> tuple[np.ndarray, np.ndarray]:
@@ -144,40 +154,19 @@ def _edge_values(P: np.ndarray, axis: int, box, size) -> np.ndarray:
     return edge_parameters(breaks, line_point, size)
 
 
-def _lattice(box2, h: float) -> np.ndarray:
-    """Triangular lattice of spacing h strictly inside [0, Lb] x [0, Lc]."""
-    dy = h * np.sqrt(3) / 2
-    ys = np.arange(dy / 2, box2[1], dy)
-    rows = [np.stack([np.arange((i % 2) * h / 2 + h / 4, box2[0], h), np.full_like(np.arange((i % 2) * h / 2 + h / 4,
-            box2[0], h), y)], axis=1) for i, y in enumerate(ys)]  # fmt: skip
-    return np.vstack(rows) if rows else np.zeros((0, 2))
-
-
 def _interior_nodes(uv_fixed, seg, h2, box2, clearance: float) -> np.ndarray:
-    """Face interior nodes ~h2 apart: a fine lattice thinned greedily (finest h first), each kept
-    node at least 0.8 h from the kept and fixed nodes and clearance * h from the segments."""
-    hmin = float(np.min(np.asarray(h2(jnp.asarray(np.vstack([uv_fixed, _lattice(box2, min(box2) / 8)]))))))
-    cand = _lattice(box2, 0.4 * hmin)
-    if len(cand) == 0:
-        return cand
-    hc = np.asarray(h2(jnp.asarray(cand)))
-    d = distance_to_segments(cand, uv_fixed, seg, 0.1 * hmin)
-    ok = d > clearance * hc
-    dn, _ = cKDTree(uv_fixed).query(cand)
-    ok &= dn > 0.8 * hc
-    cand, hc = cand[ok], hc[ok]
-    order = np.lexsort((cand[:, 1], cand[:, 0], np.round(hc / (0.05 * hmin))))
-    cell = 0.8 * hmin
-    grid: dict = {}
-    kept = []
-    for i in order:
-        p, r2, m = cand[i], (0.8 * hc[i]) ** 2, int(np.ceil(0.8 * hc[i] / cell))
-        k0, k1 = int(p[0] // cell), int(p[1] // cell)
-        near = [j for kx in range(k0 - m, k0 + m + 1) for ky in range(k1 - m, k1 + m + 1) for j in grid.get((kx, ky), ())]
-        if not near or np.min(np.sum((cand[near] - p) ** 2, axis=1)) >= r2:
-            grid.setdefault((k0, k1), []).append(i)
-            kept.append(i)
-    return cand[np.sort(np.asarray(kept, np.int64))]
+    """Face interior nodes: the vertices of a periodic quadtree refined to h2 (paper 4.3), less those
+    closer than clearance * h to a constrained segment or 0.8 h to a fixed node."""
+    h_np = lambda q: np.asarray(h2(jnp.asarray(q)))  # noqa: E731
+    nodes = periodic_octree_nodes(h_np, box2).points
+    nodes = nodes[np.all(nodes < np.asarray(box2), axis=1)]  # the upper-border copies are fixed nodes
+    if len(nodes) == 0:
+        return nodes
+    hc = h_np(nodes)
+    hmin = float(hc.min())
+    ok = distance_to_segments(nodes, uv_fixed, seg, 0.1 * hmin) > clearance * hc
+    ok &= cKDTree(uv_fixed).query(nodes)[0] > 0.8 * hc
+    return nodes[ok]
 
 
 def _encroached(pts: np.ndarray, nodes: np.ndarray, seg: np.ndarray) -> np.ndarray:
@@ -281,7 +270,7 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
     seg = seg[seg[:, 0] != seg[:, 1]]
     uv_fixed = P[face][:, [b, c]]
     box2 = (L[b], L[c])
-    h2 = _face_size(h_fn, axis, uv_fixed, node_spacing(uv_fixed, seg), config.trace_grading)
+    h2 = _face_size(h_fn, axis, uv_fixed, node_spacing(uv_fixed, seg), config.trace_grading, box2)
     lat = _interior_nodes(uv_fixed, seg, h2, box2, config.face_clearance)
     uv = np.vstack([uv_fixed, lat])
     nf = len(uv_fixed)
