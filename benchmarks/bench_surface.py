@@ -87,6 +87,11 @@ def main():
     print(f"| {len(ms.inclusions)} | {h:.4g} | {mesh.n_points} | {mesh.n_triangles} | {md['time_interfaces']:.1f} | "
           f"{md['time_faces']:.1f} | {md.get('time_intersections', 0):.1f} | {total:.1f} | {q.mean():.3f} | "
           f"{q.min():.3f} | {a.min():.1f} | {np.quantile(a, 0.01):.1f} |")
+    for kind, name in ((INTERFACE, "interface"), (BOX_FACE, "box face")):
+        sel = mesh.kind == kind
+        if sel.any():
+            print(f"{name} triangles: {int(sel.sum())}, q mean {q[sel].mean():.3f}, min angle {a[sel].min():.1f} deg, "
+                  f"{int((a[sel] < 20).sum())} below 20 deg")
     if args.png:
         plot_surface(mesh, args.png, f"{len(ms.inclusions)} inclusions, {mesh.n_triangles} triangles")
 
