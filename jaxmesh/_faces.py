@@ -163,6 +163,10 @@ def _interior_nodes(uv_fixed, seg, h2, box2, clearance: float) -> np.ndarray:
     if len(nodes) == 0:
         return nodes
     hc = h_np(nodes)
+    # square quadtree cells put four nodes on a circle: where h is uniform the relaxation keeps
+    # them there and the face triangulation (and the 3D Delaunay on it) is ambiguous
+    jitter = np.random.default_rng(len(nodes)).uniform(-0.15, 0.15, nodes.shape) * hc[:, None]
+    nodes = np.clip(nodes + jitter, 0.0, np.asarray(box2) * (1 - 1e-9))
     hmin = float(hc.min())
     ok = distance_to_segments(nodes, uv_fixed, seg, 0.1 * hmin) > clearance * hc
     ok &= cKDTree(uv_fixed).query(nodes)[0] > 0.8 * hc
