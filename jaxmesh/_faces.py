@@ -122,16 +122,22 @@ def trace_spacing(P: np.ndarray, iface_tris: np.ndarray, box) -> tuple[np.ndarra
 
 def _line_size(h_fn, box, nodes: np.ndarray, spacing: np.ndarray, grad: float):
     """NumPy size along the box edges: h capped by the trace spacing grown at rate grad, with
-    periodic distances (the four parallel edges are one edge)."""
+    periodic distances (the four parallel edges are one edge); the 8 nearest trace nodes decide."""
     L = np.asarray(box, float)
+
+    def wrapped(x):
+        w = np.mod(x, L)
+        return np.where(w >= L, 0.0, w)  # cKDTree's periodic box is half-open
+
+    tree = cKDTree(wrapped(nodes), boxsize=L) if len(nodes) else None
+    k = min(8, len(nodes))
 
     def size(p):
         h = np.asarray(h_fn(jnp.asarray(p)), float).reshape(-1)
-        if len(nodes) == 0:
+        if tree is None:
             return h
-        d = nodes[None] - p[:, None]
-        d -= L * np.round(d / L)
-        return np.minimum(h, np.min(spacing[None] + grad * np.linalg.norm(d, axis=-1), axis=1))
+        d, j = tree.query(wrapped(p), k=k)
+        return np.minimum(h, np.min(np.reshape(spacing[j] + grad * d, (len(p), k)), axis=1))
 
     return size
 
