@@ -75,6 +75,9 @@ class SurfaceConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 raise ValueError(f"SurfaceConfig.{name}: expected a finite number > 0, got {v!r}.")
+        if not (isinstance(self.face_min_angle, (int, float)) and 0 <= self.face_min_angle < 35):
+            raise ValueError(f"SurfaceConfig.face_min_angle: expected degrees in [0, 35) (Delaunay refinement "
+                             f"stops converging above ~33), got {self.face_min_angle!r}.")
         if not (0 <= self.snap_fraction < 0.5):
             raise ValueError(f"SurfaceConfig.snap_fraction: expected a number in [0, 0.5), got {self.snap_fraction!r}.")
         for name in ("improve_rounds", "newton_steps"):

@@ -97,5 +97,9 @@ def test_two_spheres_one_grid_step_apart():
 def test_config_validation():
     with pytest.raises(ValueError, match="snap_fraction"):
         SurfaceConfig(snap_fraction=0.7)
+    with pytest.raises(ValueError, match="face_min_angle"):
+        SurfaceConfig(face_min_angle=45.0)
+    with pytest.raises(ValueError, match="trace_grading"):
+        SurfaceConfig(trace_grading=0.0)
     with pytest.raises(ValueError, match="h: expected"):
         as_size_fn(-1.0, (1.0, 1.0, 1.0))
