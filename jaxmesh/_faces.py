@@ -20,7 +20,8 @@ from ._contours import edge_parameters
 from ._errors import MeshingError
 from ._intersect import intersecting_pairs
 from ._octree import periodic_octree_nodes
-from ._surface import SurfaceConfig, as_size_fn, mesh_inclusion
+from ._periodic import wrap
+from ._surface import SurfaceConfig, as_size_fn, evaluate_size, mesh_inclusion
 from ._surface_mesh import BOX_FACE, INTERFACE, OUTSIDE, SurfaceMesh
 from ._triangulate2d import (
     circumcenters,
@@ -99,13 +100,15 @@ def _face_size(h_fn, axis: int, uv: np.ndarray, spacing: np.ndarray, grad: float
     finest = float(spacing.min()) if len(spacing) else max(box2)
     n = [int(np.clip(np.ceil(2 * L / finest), 8, 1024)) for L in box2]
     grid = np.stack(np.meshgrid(*[np.arange(k) * L / k for k, L in zip(n, box2)], indexing="ij"), -1).reshape(-1, 2)
-    if len(uv):
-        k = min(8, len(uv))
-        d, j = cKDTree(uv).query(grid, k=k)
-        cap = np.min(np.reshape(spacing[j] + grad * d, (len(grid), k)), axis=1).reshape(n)
-    else:
-        cap = np.full(n, np.inf)
+    cap = _spacing_cap(cKDTree(uv), spacing, grad, grid).reshape(n) if len(uv) else np.full(n, np.inf)
     return FaceSize(h_fn, jnp.asarray(np.minimum(cap, 1e6)), box2, axis)
+
+
+def _spacing_cap(tree: cKDTree, spacing: np.ndarray, grad: float, points: np.ndarray) -> np.ndarray:
+    """(m,) min over the 8 nearest tree nodes j of spacing_j + grad |x - x_j|."""
+    k = min(8, tree.n)
+    d, j = tree.query(points, k=k)
+    return np.min(np.reshape(spacing[j] + grad * d, (len(points), k)), axis=1)
 
 
 def trace_spacing(P: np.ndarray, iface_tris: np.ndarray, box) -> tuple[np.ndarray, np.ndarray]:
@@ -126,18 +129,14 @@ def _line_size(h_fn, box, nodes: np.ndarray, spacing: np.ndarray, grad: float):
     L = np.asarray(box, float)
 
     def wrapped(x):
-        w = np.mod(x, L)
-        return np.where(w >= L, 0.0, w)  # cKDTree's periodic box is half-open
+        w = wrap(x, L)
+        return np.where(w >= L, 0.0, w)  # rounding can give L; cKDTree's periodic box is half-open
 
     tree = cKDTree(wrapped(nodes), boxsize=L) if len(nodes) else None
-    k = min(8, len(nodes))
 
     def size(p):
-        h = np.asarray(h_fn(jnp.asarray(p)), float).reshape(-1)
-        if tree is None:
-            return h
-        d, j = tree.query(wrapped(p), k=k)
-        return np.minimum(h, np.min(np.reshape(spacing[j] + grad * d, (len(p), k)), axis=1))
+        h = evaluate_size(h_fn, p)
+        return h if tree is None else np.minimum(h, _spacing_cap(tree, spacing, grad, wrapped(p)))
 
     return size
 
@@ -163,7 +162,7 @@ def _edge_values(P: np.ndarray, axis: int, box, size) -> np.ndarray:
 def _interior_nodes(uv_fixed, seg, h2, box2, clearance: float) -> np.ndarray:
     """Face interior nodes: the vertices of a periodic quadtree refined to h2 (paper 4.3), less those
     closer than clearance * h to a constrained segment or 0.8 h to a fixed node."""
-    h_np = lambda q: np.asarray(h2(jnp.asarray(q)))  # noqa: E731
+    h_np = lambda q: evaluate_size(h2, q)  # noqa: E731
     nodes = periodic_octree_nodes(h_np, box2).points
     nodes = nodes[np.all(nodes < np.asarray(box2), axis=1)]  # the upper-border copies are fixed nodes
     if len(nodes) == 0:
@@ -201,7 +200,7 @@ def _refine_face(uv, tri, seg, nf: int, h2, box2, min_angle: float, rounds: int 
         cc = circumcenters(uv[tri[bad]])
         cc = cc[np.all((cc > 0) & (cc < box), axis=1)]
         if len(cc):
-            hc = np.asarray(h2(jnp.asarray(cc)))
+            hc = evaluate_size(h2, cc)
             d, _ = cKDTree(uv).query(cc)
             ok = (d > 0.3 * hc) & ~_encroached(cc, uv[:nf], seg)
             cc, hc = cc[ok], hc[ok]

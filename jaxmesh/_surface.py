@@ -122,8 +122,11 @@ _apply_size = eqx.filter_jit(lambda h_fn, points: h_fn(points))
 
 
 def evaluate_size(h_fn, points: np.ndarray) -> np.ndarray:
-    """(m,) h at NumPy points, padded to a bucket so that one compilation serves many calls."""
-    p, k = _pad(np.asarray(points, float).reshape(-1, 3))
+    """(m,) h at NumPy points (m, d), padded to a bucket so that one compilation serves many calls."""
+    points = np.asarray(points, float)
+    if len(points) == 0:
+        return np.zeros(0)
+    p, k = _pad(points.reshape(len(points), -1))
     return np.asarray(_apply_size(h_fn, jnp.asarray(p)))[:k]
 
 
