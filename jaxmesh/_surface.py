@@ -20,7 +20,9 @@ from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from ._errors import MeshingError
+from ._quality import min_angles
 from ._surface_ops import (
+    collapse_edges,
     cut_plane,
     flip_edges,
     half_edges,
@@ -42,6 +44,8 @@ class SurfaceConfig:
     Attributes:
         mc_step: marching-cubes grid step as a fraction of the local h (about one node per h^2).
         refine_ratio: edges longer than refine_ratio * h are split (1-to-4 refinement).
+        collapse_ratio: edges shorter than collapse_ratio * h are collapsed (short trace pieces
+            left by the box cuts would otherwise make needle triangles).
         snap_fraction: before a cut, vertices closer than snap_fraction * h to the plane are
             moved onto it (no sliver pieces).
         improve_rounds: refine / flip / relax rounds before the cut (and after it).
@@ -59,11 +63,12 @@ class SurfaceConfig:
     """
 
     mc_step: float = 1.0
-    refine_ratio: float = 1.6
+    refine_ratio: float = 1.45
+    collapse_ratio: float = 0.5
     snap_fraction: float = 0.3
     improve_rounds: int = 2
     newton_steps: int = 8
-    truss: TrussConfig = TrussConfig(dt=0.2, max_iterations=40, max_retriangulations=4, newton_steps=3)
+    truss: TrussConfig = TrussConfig(dt=0.05, max_iterations=30, max_retriangulations=2, newton_steps=3, max_dt_retries=0)
     face_truss: TrussConfig = TrussConfig(dt=0.2, max_iterations=40, max_retriangulations=4)
     face_clearance: float = 0.6
     trace_grading: float = 0.3
@@ -71,6 +76,9 @@ class SurfaceConfig:
     check_intersections: bool = True
 
     def __post_init__(self):
+        if not (isinstance(self.collapse_ratio, (int, float)) and 0 <= self.collapse_ratio < 0.5 * self.refine_ratio):
+            raise ValueError(f"SurfaceConfig.collapse_ratio: expected a number in [0, refine_ratio / 2), got "
+                             f"{self.collapse_ratio!r} (a collapse must not make an edge that refinement splits).")
         for name in ("mc_step", "refine_ratio", "face_clearance", "trace_grading"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
@@ -245,14 +253,18 @@ def folded(points, tris, phi_fn) -> np.ndarray:
     return np.einsum("ij,ij->i", nrm, g) <= 0
 
 
+_KEEP_ANGLE = 25.0  # degrees: a relaxation may lower the smallest angle only down to this
+
+
 def improve(points, tris, on_plane, phi_fn, h_fn, box, config: SurfaceConfig, cut: bool):
     """Rounds of 1-to-4 refinement (edges > refine_ratio * h), quality flips and truss relaxation.
 
-    A relaxation that folds a triangle is retried with dt / 5 and otherwise dropped (back off,
-    never delete triangles). Returns (points, tris, on_plane).
+    A relaxation that folds a triangle, or takes the smallest angle below both its old value and
+    _KEEP_ANGLE, is retried with dt / 5 and otherwise dropped (back off, never delete triangles). Returns (points, tris, on_plane).
     """
     truss = config.truss
     for _ in range(config.improve_rounds):
+        points, tris, on_plane = _collapse_short(points, tris, on_plane, h_fn, config.collapse_ratio)
         edges, _ = half_edges(tris, len(points))
         length = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
         h_mid = evaluate_size(h_fn, 0.5 * (points[edges[:, 0]] + points[edges[:, 1]]))
@@ -267,12 +279,31 @@ def improve(points, tris, on_plane, phi_fn, h_fn, box, config: SurfaceConfig, cu
         cells = triangle_cells(points, tris, box) if cut else None
         allowed = (lambda t1, t2: (cells[t1] == cells[t2]).all(axis=1)) if cut else None
         tris, _ = flip_edges(points, tris, allowed)
+        worst = min_angles(points, tris).min()
         for attempt in range(2):
             cfg = truss if attempt == 0 else dataclasses.replace(truss, dt=truss.dt * truss.dt_retry_factor)
             q, t, _ = _relax(points, tris, on_plane, phi_fn, h_fn, box, cfg, cut)
-            if not folded(q, t, phi_fn).any():
+            if not folded(q, t, phi_fn).any() and min_angles(q, t).min() >= min(worst, _KEEP_ANGLE):
                 points, tris = q, t
                 break
+    return points, tris, on_plane
+
+
+def _collapse_short(points, tris, on_plane, h_fn, ratio: float, passes: int = 3):
+    """Collapse edges shorter than ratio * h, and the shortest edge of needles (a triangle below
+    20 degrees) when it is under 0.8 h: relaxation alone does not separate two close nodes."""
+    for _ in range(passes):
+        edges, tri_edge = half_edges(tris, len(points))
+        length = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
+        h_mid = evaluate_size(h_fn, 0.5 * (points[edges[:, 0]] + points[edges[:, 1]]))
+        short = length < ratio * h_mid
+        needle = min_angles(points, tris) < 20.0
+        if needle.any():
+            shortest = tri_edge[needle, np.argmin(length[tri_edge[needle]], axis=1)]
+            short[shortest[length[shortest] < 0.8 * h_mid[shortest]]] = True
+        points, tris, on_plane, done = collapse_edges(points, tris, on_plane, short)
+        if done == 0:
+            break
     return points, tris, on_plane
 
 

@@ -232,3 +232,80 @@ def straddling(points: np.ndarray, tris: np.ndarray, box) -> np.ndarray:
     lo, hi = c[:, None, :] * L, (c[:, None, :] + 1) * L
     p = points[tris]
     return ((p < lo) | (p > hi)).any(axis=(1, 2))
+
+
+def _vertex_triangles(tris: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR (offsets (n + 1,), triangle ids) of the triangles around each vertex."""
+    owner = np.repeat(np.arange(len(tris)), 3)
+    order = np.argsort(tris.reshape(-1), kind="stable")
+    return np.r_[0, np.cumsum(np.bincount(tris.reshape(-1), minlength=n))], owner[order]
+
+
+def collapse_edges(points, tris, on_plane, short: np.ndarray, *, min_cos: float = 0.5, min_quality: float = 0.2):
+    """Collapse the marked edges (shortest first) by removing one end vertex into the other.
+
+    The removed vertex's box planes must be planes of the kept one, so traces and box edges stay
+    put. A collapse is skipped when it would break the manifold (the ends share a neighbour other
+    than the two opposite vertices, or an opposite vertex drops to degree 3), turn a triangle by
+    more than acos(min_cos) or leave one below min_quality. One vertex star changes at most once
+    per call; the caller iterates.
+
+    Args:
+        points: (n, 3). tris: (t, 3). on_plane: (n, 3) bool. short: (e,) bool over ``half_edges(tris, n)[0]``.
+    Returns:
+        (points, tris, on_plane) with the removed vertices dropped, and the number of collapses.
+    """
+    n = len(points)
+    edges, _ = half_edges(tris, n)
+    cand = np.flatnonzero(short)
+    if cand.size == 0:
+        return points, tris, on_plane, 0
+    length = np.linalg.norm(points[edges[cand, 0]] - points[edges[cand, 1]], axis=1)
+    off, vt = _vertex_triangles(tris, n)
+    tri = tris.copy()
+    alive = np.ones(len(tri), bool)
+    touched = np.zeros(n, bool)
+    removed = np.zeros(n, bool)
+    done = 0
+    for e in cand[np.argsort(length)]:
+        u, v = edges[e]
+        for keep, drop in ((u, v), (v, u)):
+            if (on_plane[drop] & ~on_plane[keep]).any():
+                continue
+            if (on_plane[drop] & (points[drop] != points[keep])).any():
+                continue  # different planes of one axis
+            star = vt[off[drop]:off[drop + 1]]
+            star = star[alive[star]]
+            if touched[np.unique(tri[star])].any():
+                continue
+            shared = np.isin(tri[star], keep).any(axis=1)  # the two triangles on the edge
+            if shared.sum() != 2:
+                continue
+            ring_keep = vt[off[keep]:off[keep + 1]]
+            ring_keep = np.unique(tri[ring_keep[alive[ring_keep]]])
+            ring_drop = np.unique(tri[star])
+            opposite = np.setdiff1d(tri[star[shared]], [keep, drop])
+            common = np.setdiff1d(np.intersect1d(ring_keep, ring_drop), [keep, drop])
+            if len(opposite) != 2 or not np.array_equal(np.sort(common), np.sort(opposite)):
+                continue
+            deg = [np.count_nonzero(alive[vt[off[c]:off[c + 1]]]) for c in opposite]
+            if min(deg) <= 3:
+                continue
+            moved = tri[star[~shared]]
+            new = np.where(moved == drop, keep, moved)
+            old_n, new_n = _normals(points[moved]), _normals(points[new])
+            if (np.sum(old_n * new_n, axis=1) < min_cos).any() or (cell_quality(points, new) < min_quality).any():
+                continue
+            tri[star[~shared]] = new
+            alive[star[shared]] = False
+            touched[ring_drop] = True
+            touched[ring_keep] = True
+            removed[drop] = True
+            done += 1
+            break
+    if done == 0:
+        return points, tris, on_plane, 0
+    keep_ids = np.flatnonzero(~removed)
+    remap = np.full(n, -1, np.int64)
+    remap[keep_ids] = np.arange(len(keep_ids))
+    return points[keep_ids], remap[tri[alive]], on_plane[keep_ids], done

@@ -106,9 +106,7 @@ def test_quality(rve):
     a = min_angles(m.points, m.triangles)
     assert q[m.kind == INTERFACE].mean() >= 0.85
     assert q[m.kind == BOX_FACE].mean() >= 0.85
-    assert a[m.kind == BOX_FACE].min() >= 20.0
-    assert np.quantile(a, 0.01) >= 20.0
-    assert a.min() >= 10.0  # known gap: interface triangles at traces of random RVEs go down to a few degrees
+    assert a.min() >= 20.0
 
 
 def test_bad_input():
@@ -139,6 +137,7 @@ def test_random_ellipsoids(seed):
         assert np.abs(m.points[pairs[:, 1]] - m.points[pairs[:, 0]] - e).max() <= 1e-12
     q = cell_quality(m.points, m.triangles)
     assert q.mean() >= 0.85
+    assert min_angles(m.points, m.triangles).min() >= 20.0
     p = m.points[m.triangles]
     six = np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2]))
     for inc in ms.inclusions:

@@ -9,7 +9,7 @@ import pytest
 from jaxmesh._intersect import intersecting_pairs
 from jaxmesh._quality import cell_quality, min_angles
 from jaxmesh._surface import SurfaceConfig, as_size_fn, enclosed_volume, extract, mesh_inclusion, project
-from jaxmesh._surface_ops import cut_plane, flip_edges, half_edges, refine, straddling
+from jaxmesh._surface_ops import collapse_edges, cut_plane, flip_edges, half_edges, refine, straddling
 from jaxmesh.geometry._microstructure import Microstructure
 from jaxmesh.geometry._shapes import sphere_sdf
 
@@ -62,6 +62,23 @@ def test_cut_plane_splits_without_straddling(sphere):
     assert len(new) > 0 and (q[new, 0] == 0.55).all() and flags[new, 0].all()
     assert _closed(t2) and not straddling(q, t2, box).any()
     assert enclosed_volume(q, t2) == pytest.approx(enclosed_volume(p, t), rel=1e-12)
+
+
+def test_collapse_removes_short_edges_and_keeps_traces(sphere):
+    phi, p, t = sphere
+    q, t2, flags, _ = cut_plane(p, t, np.zeros(p.shape, bool), 0, 0.55)
+    edges, _ = half_edges(t2, len(q))
+    length = np.linalg.norm(q[edges[:, 0]] - q[edges[:, 1]], axis=1)
+    short = length < 0.4 * np.median(length)
+    assert short.sum() > 10  # marching cubes and the cut leave many
+    q3, t3, flags3, done = collapse_edges(q, t2, flags, short)
+    assert done > 0 and len(q3) == len(q) - done and len(t3) == len(t2) - 2 * done
+    assert _closed(t3) and np.array_equal(np.unique(t3), np.arange(len(q3)))
+    assert len(q3) - len(half_edges(t3, len(q3))[0]) + len(t3) == 2  # still a sphere
+    # trace vertices are kept or merged into trace vertices: the plane x = 0.55 keeps its cut
+    assert (q3[flags3[:, 0], 0] == 0.55).all() and flags3[:, 0].sum() > 0
+    assert not straddling(q3, t3, (0.55, 1.0, 1.0)).any()
+    assert enclosed_volume(q3, t3) == pytest.approx(enclosed_volume(q, t2), rel=0.02)
 
 
 def test_sphere_at_r_over_6():

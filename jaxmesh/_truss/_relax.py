@@ -247,6 +247,14 @@ def _run_chunk(p, bars, bar_mask, l_ref, l_norm, cons, tets, tet_mask, sc, h_fn,
     return p, status, it, li, trace
 
 
+@eqx.filter_jit
+def _reference_lengths(p, bars, bar_mask, h_fn, h_params, power: int):
+    """Bar lengths at a triangulation, and the target lengths (fscale 1) that normalise their
+    changes: the tiny bars of a random start would otherwise trigger a retriangulation per step."""
+    l_norm, _ = target_lengths(p, bars, bar_mask, h_fn, h_params, fscale=1.0, power=power)
+    return bar_lengths(p, bars), l_norm
+
+
 def _triangulate(triangulate_fn, points_np, n):
     simplices = np.asarray(triangulate_fn(points_np))
     if simplices.ndim != 2 or simplices.shape[0] == 0 or simplices.shape[1] < 2:
@@ -366,6 +374,14 @@ def _attempt(p0, cons, triangulate_fn, h_fn, h_params, phi_fn, phi_params, confi
     p, it, li, n_retri = p0, 0, 0, 0
     bar_cap = tet_cap = None
     history = []
+    # NumPy scalars: no eager JAX dispatch per chunk (they are traced, so dt retries reuse the scan)
+    scalars = {
+        "dt": np.asarray(dt, dtype), "fscale": np.asarray(config.fscale, dtype),
+        "ramp": np.asarray(config.alpha_ramp_iterations, np.int32), "alpha_start": np.asarray(config.alpha_start, dtype),
+        "stop_tol": np.asarray(config.stop_tol, dtype), "retri_tol": np.asarray(config.retriangulate_tol, dtype),
+        "max_it": np.asarray(config.max_iterations, np.int32), "lo": lo, "hi": hi,
+        "bv_k": np.asarray(config.ball_vertex_stiffness, dtype), "bv_q": np.asarray(config.ball_vertex_quality, dtype),
+    }  # fmt: skip
     simplices = _triangulate(triangulate_fn, np.asarray(p), n)
     edges = edges_from_simplices(simplices, n)
     while True:
@@ -380,21 +396,10 @@ def _attempt(p0, cons, triangulate_fn, h_fn, h_params, phi_fn, phi_params, confi
             tets, tet_mask = jnp.asarray(t_np), jnp.asarray(tm_np)
         st = _Static(config.scan_chunk, config.repulsive_cutoff, config.scale_exponent or simplices.shape[1] - 1,
                      config.newton_steps, use_bv)  # fmt: skip
-        l_ref = bar_lengths(p, bars)
-        # length changes are measured against the target length of each bar, not its current
-        # length: the tiny bars of a random start would otherwise trigger a retriangulation per step
-        l_norm, _ = target_lengths(p, bars, bar_mask, h_fn, h_params, fscale=1.0, power=st.power)
+        l_ref, l_norm = _reference_lengths(p, bars, bar_mask, h_fn, h_params, st.power)
         status = RUNNING
         while status == RUNNING:
-            sc = {
-                "dt": jnp.asarray(dt, dtype), "fscale": jnp.asarray(config.fscale, dtype),
-                "ramp": jnp.asarray(config.alpha_ramp_iterations, jnp.int32),
-                "alpha_start": jnp.asarray(config.alpha_start, dtype),
-                "stop_tol": jnp.asarray(config.stop_tol, dtype), "retri_tol": jnp.asarray(config.retriangulate_tol, dtype),
-                "max_it": jnp.asarray(config.max_iterations, jnp.int32), "lo": lo, "hi": hi,
-                "bv_k": jnp.asarray(config.ball_vertex_stiffness, dtype), "bv_q": jnp.asarray(config.ball_vertex_quality, dtype),
-                "it0": jnp.asarray(it, jnp.int32), "li0": jnp.asarray(li, jnp.int32),
-            }  # fmt: skip
+            sc = dict(scalars, it0=np.asarray(it, np.int32), li0=np.asarray(li, np.int32))
             p, status_a, it_a, li_a, (alphas, moves, changes) = _run_chunk(
                 p, bars, bar_mask, l_ref, l_norm, cons, tets, tet_mask, sc, h_fn, h_params, phi_fn, phi_params, st
             )
