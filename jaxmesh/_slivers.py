@@ -270,42 +270,56 @@ def _sorted_keys(items: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return key[order], order // items.shape[1]
 
 
-def _edge_candidates(points, cells, q, edges, protected, tkeys, towner):
-    """Edge removals around the given edges (k, 2): (gain, removed tets (k, n), new tets) per ring size."""
+def _edge_candidates(points, cells, q, edges, protected, tkeys, towner, batch: int = 16384):
+    """Edge removals around the given edges (k, 2): (gain, removed tets (k, n), new tets) per ring size.
+
+    Edges go in batches: a ring of 7 has 35 candidate triangles and 70 candidate tets, and all
+    edges of the bad tets at once held ~2 GB on a 1M-tet mesh. Same candidates, same order.
+    """
     n = len(points)
     key = edges[:, 0] * n + edges[:, 1]
     lo, hi = np.searchsorted(tkeys, key), np.searchsorted(tkeys, key, side="right")
+    qbar = q.mean()
     out = []
-    for size, (tris, index) in _TRIANGLE_INDEX.items():
-        sel = np.flatnonzero(hi - lo == size)
-        if not len(sel):
-            continue
-        p, r = edges[sel, 0], edges[sel, 1]
-        ring_tets = towner[lo[sel][:, None] + np.arange(size)]  # (k, size)
-        c = cells[ring_tets]
-        pairs = c[(c != p[:, None, None]) & (c != r[:, None, None])].reshape(len(sel), size, 2)
-        ring, ok = _chain(pairs)
-        # faces (p, r, o) around the edge must not be surface triangles
-        faces = np.stack([np.broadcast_to(p[:, None], ring.shape), np.broadcast_to(r[:, None], ring.shape), ring], -1)
-        ok &= ~_protected_rows(faces, protected, n)
-        if not ok.any():
-            continue
-        p, r, ring, ring_tets = p[ok], r[ok], ring[ok], ring_tets[ok]
-        flip = _six_volumes(points[np.stack([p, r, ring[:, 0], ring[:, 1]], 1)]) < 0
-        ring[flip] = ring[flip, ::-1]  # (p, r, o_i, o_i+1) positive: then (a, b, c, r) is positive
-        tri = ring[:, tris]  # (k, c, 3): every triangle of the ring, with r above and p below
-        k, c = tri.shape[:2]
-        up = np.concatenate([tri, np.broadcast_to(r[:, None, None], (k, c, 1))], -1)
-        down = np.concatenate([tri[..., [0, 2, 1]], np.broadcast_to(p[:, None, None], (k, c, 1))], -1)
-        score = np.minimum(tet_quality(points[up.reshape(-1, 4)]), tet_quality(points[down.reshape(-1, 4)]))
-        qual = score.reshape(k, c)[:, index].min(axis=2)  # (k, triangulations)
-        chosen = index[np.argmax(qual, axis=1)]  # (k, size - 2) triangle ids of the max-min triangulation
-        rows = np.arange(k)[:, None]
-        tets = np.concatenate([up[rows, chosen], down[rows, chosen]], axis=1)
-        gain = _flip_gain(q[ring_tets], tet_quality(points[tets.reshape(-1, 4)]).reshape(k, -1), q.mean())
-        good = gain > 0
-        out.append((gain[good], ring_tets[good], tets[good]))
+    for size in _TRIANGLE_INDEX:
+        sel_all = np.flatnonzero(hi - lo == size)
+        parts = [_ring_removals(points, cells, q, qbar, edges[sel], lo[sel], size, protected, towner)
+                 for sel in np.array_split(sel_all, -(-len(sel_all) // batch))] if len(sel_all) else []
+        parts = [x for x in parts if x is not None]
+        if parts:
+            out.append(tuple(np.concatenate(col) for col in zip(*parts)))
     return out
+
+
+def _ring_removals(points, cells, q, qbar, edges, lo, size, protected, towner):
+    """`_edge_candidates` for edges (k, 2) with rings of `size` tets starting at towner[lo]; None if none apply."""
+    n = len(points)
+    tris, index = _TRIANGLE_INDEX[size]
+    p, r = edges[:, 0], edges[:, 1]
+    ring_tets = towner[lo[:, None] + np.arange(size)]  # (k, size)
+    c = cells[ring_tets]
+    pairs = c[(c != p[:, None, None]) & (c != r[:, None, None])].reshape(len(edges), size, 2)
+    ring, ok = _chain(pairs)
+    # faces (p, r, o) around the edge must not be surface triangles
+    faces = np.stack([np.broadcast_to(p[:, None], ring.shape), np.broadcast_to(r[:, None], ring.shape), ring], -1)
+    ok &= ~_protected_rows(faces, protected, n)
+    if not ok.any():
+        return None
+    p, r, ring, ring_tets = p[ok], r[ok], ring[ok], ring_tets[ok]
+    flip = _six_volumes(points[np.stack([p, r, ring[:, 0], ring[:, 1]], 1)]) < 0
+    ring[flip] = ring[flip, ::-1]  # (p, r, o_i, o_i+1) positive: then (a, b, c, r) is positive
+    tri = ring[:, tris]  # (k, c, 3): every triangle of the ring, with r above and p below
+    k, c = tri.shape[:2]
+    up = np.concatenate([tri, np.broadcast_to(r[:, None, None], (k, c, 1))], -1)
+    down = np.concatenate([tri[..., [0, 2, 1]], np.broadcast_to(p[:, None, None], (k, c, 1))], -1)
+    score = np.minimum(tet_quality(points[up.reshape(-1, 4)]), tet_quality(points[down.reshape(-1, 4)]))
+    qual = score.reshape(k, c)[:, index].min(axis=2)  # (k, triangulations)
+    chosen = index[np.argmax(qual, axis=1)]  # (k, size - 2) triangle ids of the max-min triangulation
+    rows = np.arange(k)[:, None]
+    tets = np.concatenate([up[rows, chosen], down[rows, chosen]], axis=1)
+    gain = _flip_gain(q[ring_tets], tet_quality(points[tets.reshape(-1, 4)]).reshape(k, -1), qbar)
+    good = gain > 0
+    return gain[good], ring_tets[good], tets[good]
 
 
 def _flip_gain(old: np.ndarray, new: np.ndarray, qbar: float) -> np.ndarray:
