@@ -68,7 +68,8 @@ class SurfaceConfig:
     snap_fraction: float = 0.3
     improve_rounds: int = 2
     newton_steps: int = 8
-    truss: TrussConfig = TrussConfig(dt=0.05, max_iterations=30, max_retriangulations=2, newton_steps=3, max_dt_retries=0)
+    truss: TrussConfig = TrussConfig(dt=0.05, max_iterations=30, max_retriangulations=2, newton_steps=3, max_dt_retries=0,
+                                     retriangulate_tol=0.3, scan_chunk=30)
     face_truss: TrussConfig = TrussConfig(dt=0.2, max_iterations=40, max_retriangulations=4)
     face_clearance: float = 0.6
     trace_grading: float = 0.3

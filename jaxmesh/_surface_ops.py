@@ -234,13 +234,6 @@ def straddling(points: np.ndarray, tris: np.ndarray, box) -> np.ndarray:
     return ((p < lo) | (p > hi)).any(axis=(1, 2))
 
 
-def _vertex_triangles(tris: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """CSR (offsets (n + 1,), triangle ids) of the triangles around each vertex."""
-    owner = np.repeat(np.arange(len(tris)), 3)
-    order = np.argsort(tris.reshape(-1), kind="stable")
-    return np.r_[0, np.cumsum(np.bincount(tris.reshape(-1), minlength=n))], owner[order]
-
-
 def collapse_edges(points, tris, on_plane, short: np.ndarray, *, min_cos: float = 0.5, min_quality: float = 0.2):
     """Collapse the marked edges (shortest first) by removing one end vertex into the other.
 
@@ -261,45 +254,46 @@ def collapse_edges(points, tris, on_plane, short: np.ndarray, *, min_cos: float 
     if cand.size == 0:
         return points, tris, on_plane, 0
     length = np.linalg.norm(points[edges[cand, 0]] - points[edges[cand, 1]], axis=1)
-    off, vt = _vertex_triangles(tris, n)
-    tri = tris.copy()
+    # plain Python sets: the stars hold ~6 triangles, where NumPy calls cost more than the work
+    tri = tris.tolist()
+    star = [[] for _ in range(n)]
+    for t, (a, b, c) in enumerate(tri):
+        star[a].append(t), star[b].append(t), star[c].append(t)
+    planes = [frozenset(np.flatnonzero(row).tolist()) for row in on_plane]
     alive = np.ones(len(tri), bool)
     touched = np.zeros(n, bool)
     removed = np.zeros(n, bool)
     done = 0
     for e in cand[np.argsort(length)]:
-        u, v = edges[e]
+        u, v = int(edges[e, 0]), int(edges[e, 1])
         for keep, drop in ((u, v), (v, u)):
-            if (on_plane[drop] & ~on_plane[keep]).any():
+            if not planes[drop] <= planes[keep] or any(points[drop, a] != points[keep, a] for a in planes[drop]):
+                continue  # a trace / box-edge vertex only merges into one on the same planes
+            around = [t for t in star[drop] if alive[t]]
+            ring_drop = {w for t in around for w in tri[t]}
+            if any(touched[w] for w in ring_drop):
                 continue
-            if (on_plane[drop] & (points[drop] != points[keep])).any():
-                continue  # different planes of one axis
-            star = vt[off[drop]:off[drop + 1]]
-            star = star[alive[star]]
-            if touched[np.unique(tri[star])].any():
+            on_edge = [t for t in around if keep in tri[t]]
+            if len(on_edge) != 2:
                 continue
-            shared = np.isin(tri[star], keep).any(axis=1)  # the two triangles on the edge
-            if shared.sum() != 2:
+            opposite = {w for t in on_edge for w in tri[t]} - {keep, drop}
+            ring_keep = {w for t in star[keep] if alive[t] for w in tri[t]}
+            if len(opposite) != 2 or (ring_keep & ring_drop) - {keep, drop} != opposite:
+                continue  # the link condition: the collapse would pinch the surface
+            if min(sum(alive[t] for t in star[w]) for w in opposite) <= 3:
                 continue
-            ring_keep = vt[off[keep]:off[keep + 1]]
-            ring_keep = np.unique(tri[ring_keep[alive[ring_keep]]])
-            ring_drop = np.unique(tri[star])
-            opposite = np.setdiff1d(tri[star[shared]], [keep, drop])
-            common = np.setdiff1d(np.intersect1d(ring_keep, ring_drop), [keep, drop])
-            if len(opposite) != 2 or not np.array_equal(np.sort(common), np.sort(opposite)):
+            moved = [t for t in around if t not in on_edge]
+            old = np.array([tri[t] for t in moved])
+            new = np.where(old == drop, keep, old)
+            if (np.sum(_normals(points[old]) * _normals(points[new]), axis=1) < min_cos).any() or (
+                cell_quality(points, new) < min_quality
+            ).any():
                 continue
-            deg = [np.count_nonzero(alive[vt[off[c]:off[c + 1]]]) for c in opposite]
-            if min(deg) <= 3:
-                continue
-            moved = tri[star[~shared]]
-            new = np.where(moved == drop, keep, moved)
-            old_n, new_n = _normals(points[moved]), _normals(points[new])
-            if (np.sum(old_n * new_n, axis=1) < min_cos).any() or (cell_quality(points, new) < min_quality).any():
-                continue
-            tri[star[~shared]] = new
-            alive[star[shared]] = False
-            touched[ring_drop] = True
-            touched[ring_keep] = True
+            for t, row in zip(moved, new.tolist()):
+                tri[t] = row
+                star[keep].append(t)
+            alive[on_edge] = False
+            touched[list(ring_drop | ring_keep)] = True
             removed[drop] = True
             done += 1
             break
@@ -308,4 +302,4 @@ def collapse_edges(points, tris, on_plane, short: np.ndarray, *, min_cos: float 
     keep_ids = np.flatnonzero(~removed)
     remap = np.full(n, -1, np.int64)
     remap[keep_ids] = np.arange(len(keep_ids))
-    return points[keep_ids], remap[tri[alive]], on_plane[keep_ids], done
+    return points[keep_ids], remap[np.asarray(tri, np.int64)[alive]], on_plane[keep_ids], done

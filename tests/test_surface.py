@@ -97,6 +97,21 @@ def test_sphere_at_r_over_6():
     assert len(intersecting_pairs(p, t)) == 0
 
 
+@pytest.mark.parametrize("axes", [(0.127, 0.08, 0.08), (0.15, 0.1, 0.06)])
+def test_rotated_ellipsoid_at_smallest_axis_over_6(axes):
+    from jaxmesh.geometry._shapes import ellipsoid_sdf
+
+    axes = np.array(axes)
+    rotation = np.linalg.qr(np.random.default_rng(3).normal(size=(3, 3)))[0]
+    ms = Microstructure.from_functions([ellipsoid_sdf(np.array([0.5, 0.5, 0.5]), axes, rotation)], (1.0, 1.0, 1.0),
+                                       (32, 32, 32))  # fmt: skip
+    out = mesh_inclusion(ms.inclusions[0], as_size_fn(axes.min() / 6, ms.box), ms.box, SurfaceConfig())
+    p, t = out["points"], out["triangles"]
+    assert _closed(t)
+    assert enclosed_volume(p, t) == pytest.approx(4 / 3 * np.pi * axes.prod(), rel=0.01)
+    assert cell_quality(p, t).mean() >= 0.85 and min_angles(p, t).min() >= 20.0
+
+
 def test_two_spheres_one_grid_step_apart():
     r, step = 0.15, 1.0 / 32
     c = [np.array([0.3, 0.5, 0.5]), np.array([0.3 + 2 * r + step, 0.5, 0.5])]

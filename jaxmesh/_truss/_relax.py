@@ -219,12 +219,17 @@ def _run_chunk(p, bars, bar_mask, l_ref, l_norm, cons, tets, tet_mask, sc, h_fn,
     def body(carry, _):
         p, status, it, li = carry
         alpha = alpha_schedule(it, sc["ramp"], sc["alpha_start"])
-        new = truss_step(
-            p, alpha, bars, bar_mask, cons, sc["dt"], h_fn, h_params, phi_fn, phi_params,
-            fscale=sc["fscale"], power=st.power, cutoff=st.cutoff, n_newton=st.n_newton,
-            tets=tets if st.ball_vertex else None, tet_mask=tet_mask,
-            ball_vertex_stiffness=sc["bv_k"], ball_vertex_quality=sc["bv_q"],
-        )  # fmt: skip
+
+        def step(q):
+            return truss_step(
+                q, alpha, bars, bar_mask, cons, sc["dt"], h_fn, h_params, phi_fn, phi_params,
+                fscale=sc["fscale"], power=st.power, cutoff=st.cutoff, n_newton=st.n_newton,
+                tets=tets if st.ball_vertex else None, tet_mask=tet_mask,
+                ball_vertex_stiffness=sc["bv_k"], ball_vertex_quality=sc["bv_q"],
+            )  # fmt: skip
+
+        # after a stop event the chunk's remaining steps are skipped, not computed and discarded
+        new = jax.lax.cond(status == RUNNING, step, lambda q: q, p)
         l_old, l_new = bar_lengths(p, bars), bar_lengths(new, bars)
         move = jnp.max(jnp.where(bar_mask, jnp.abs(l_new - l_old) / l_norm, 0.0))
         change = jnp.max(jnp.where(bar_mask, jnp.abs(l_new - l_ref) / l_norm, 0.0))
