@@ -101,16 +101,18 @@ def parse_args(argv=None):
     parser.add_argument("--radius", type=float, nargs=2, default=(0.08, 0.015), help="mean, std of the radius")
     parser.add_argument("--min-gap", type=float, default=0.01)
     parser.add_argument("--grid", type=int, default=128)
-    parser.add_argument("--iis", type=float, default=0.05)
-    parser.add_argument("--nb-el", type=float, default=3.0, help="elements across the narrowest gaps")
+    parser.add_argument("--iis", type=float, default=None, help="default 0.05, or the preset's")
+    parser.add_argument("--nb-el", type=float, default=None, help="elements across the narrowest gaps (default 3, "
+                        "or the preset's)")
     parser.add_argument("--h", type=float, default=None, help="uniform size instead of the size function")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--input", default=None, help="mesh this input file instead of generating an RVE")
     parser.add_argument("--surface-cache", default=None, help=".npz to store / reuse the surface mesh (with a preset: name_<preset>.npz)")
     parser.add_argument("--estimate", action="store_true", help="only print the size function's predicted count")
     args = parser.parse_args(argv)
-    if args.preset:
-        args.iis, args.nb_el = PRESETS[args.preset]["iis"], PRESETS[args.preset]["nb_el"]
+    chosen = PRESETS[args.preset] if args.preset else {"iis": 0.05, "nb_el": 3.0}
+    args.iis = chosen["iis"] if args.iis is None else args.iis  # explicit options win over the preset
+    args.nb_el = chosen["nb_el"] if args.nb_el is None else args.nb_el
     return args
 
 
