@@ -16,12 +16,15 @@ nor its narrowness setting, so the presets are chosen to land near those counts:
   with radius N(0.08, 0.015) the generator jams at gap 0.02 (effective fraction of the spheres
   grown by half the gap ~0.68, above random close packing), and gap 0.01 is what issue 2 uses.
 * Size function: with gaps of 0.01 the narrowness term (h_nar = DN2 / nb_el) sets h almost
-  everywhere, so iis alone barely changes the mesh: the predicted count (c * integral of h^-3,
-  `SizeField.element_count`) is the same for iis 0.05 and 0.03 at nb_el 3 (4.7M) and at
-  nb_el 1 (0.59M), with `--estimate`. The presets therefore also set
-  nb_el: coarse iis 0.05, nb_el 0.5 (h >= 0.02 in the gaps: two gap widths, as a ~300k-tet mesh
-  of this RVE must have); fine iis 0.03, nb_el 1 (one element across the narrowest gaps).
-  `--estimate` prints the predicted count of a setting in ~1 min, without meshing.
+  everywhere, so iis alone barely changes the mesh: on 180 spheres of radius N(0.081, 0.015) the
+  predicted count (c * integral of h^-3, `SizeField.element_count`) was the same for iis 0.05
+  and 0.03 at nb_el 3 (4.7M) and at nb_el 1 (0.59M). The presets therefore also set nb_el:
+  coarse iis 0.05, nb_el 0.75; fine iis 0.03, nb_el 1 (one element across the narrowest gaps).
+  nb_el 0.5 would come nearer 300k tets, but the surface stage failed on it (seed 0: a trace on
+  x = 0 without its translate on x = L; seed 1: 3 intersecting triangle pairs), 2026-11-28.
+  Measured: the coarse preset gives 774k tets for a predicted 360k (factor 2.15), the fine
+  preset's volume step did not finish (surface triangles left missing after 12 recovery rounds);
+  see benchmarks/README.md. `--estimate` prints the predicted count of a setting without meshing.
 
 Prints per-stage times (size, surfaces, volume sub-stages: interior nodes, Delaunay + recovery,
 labels, relaxation, slivers; validation, quality report), node / tet counts, mean q, % q < 0.3,
@@ -44,7 +47,7 @@ import time
 import numpy as np
 
 PRESETS = {  # Table 1 rows: mesh settings (the geometry is the same, see the docstring)
-    "coarse": {"iis": 0.05, "nb_el": 0.5},
+    "coarse": {"iis": 0.05, "nb_el": 0.75},
     "fine": {"iis": 0.03, "nb_el": 1.0},
 }
 
