@@ -84,11 +84,24 @@ class FaceSize(eqx.Module):
 
 
 def node_spacing(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    """(n,) mean length of the segments at each node (inf where none)."""
+    """(n,) length of the shortest segment at each node (inf where none): a face triangle on a
+    short trace segment must be about as small, or its angle there closes."""
     length = np.linalg.norm(points[segments[:, 0]] - points[segments[:, 1]], axis=1)
-    total = np.bincount(segments.reshape(-1), np.repeat(length, 2), minlength=len(points))
-    count = np.bincount(segments.reshape(-1), minlength=len(points))
-    return np.where(count > 0, total / np.maximum(count, 1), np.inf)
+    out = np.full(len(points), np.inf)
+    np.minimum.at(out, segments.reshape(-1), np.repeat(length, 2))
+    return out
+
+
+def feature_spacing(points: np.ndarray, segments: np.ndarray, box) -> np.ndarray:
+    """node_spacing, also capped by the distance from the node to the box planes it is not on
+    (down to half the node spacing): a trace passing a fraction of h from a box edge needs box-edge
+    nodes about as close. Thinner lenses between a trace and a box edge are features below h that
+    the fixed trace nodes cannot resolve; refining the box edge further only makes more needles."""
+    L = np.asarray(box, float)
+    gap = np.minimum(points, L - points)
+    gap = np.where(gap > 0, gap, np.inf).min(axis=1)
+    spacing = node_spacing(points, segments)
+    return np.minimum(spacing, np.maximum(gap, 0.5 * spacing))
 
 
 def _face_size(h_fn, axis: int, uv: np.ndarray, spacing: np.ndarray, grad: float, box2) -> FaceSize:
@@ -112,13 +125,13 @@ def _spacing_cap(tree: cKDTree, spacing: np.ndarray, grad: float, points: np.nda
 
 
 def trace_spacing(P: np.ndarray, iface_tris: np.ndarray, box) -> tuple[np.ndarray, np.ndarray]:
-    """Trace nodes (interface nodes on a box plane) and the mean length of their trace segments."""
+    """Trace nodes (interface nodes on a box plane) and their feature_spacing."""
     L = np.asarray(box, float)
     e = np.concatenate([iface_tris[:, [0, 1]], iface_tris[:, [1, 2]], iface_tris[:, [2, 0]]])
     pu, pv = P[e[:, 0]], P[e[:, 1]]
     same = ((pu == 0.0) & (pv == 0.0)) | ((pu == L) & (pv == L))
     seg = e[same.any(axis=1)]
-    sp = node_spacing(P, seg)
+    sp = np.where(np.isfinite(node_spacing(P, seg)), feature_spacing(P, seg, box), np.inf)
     nodes = np.flatnonzero(np.isfinite(sp))
     return nodes, sp[nodes]
 
@@ -279,7 +292,7 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
     seg = seg[seg[:, 0] != seg[:, 1]]
     uv_fixed = P[face][:, [b, c]]
     box2 = (L[b], L[c])
-    h2 = _face_size(h_fn, axis, uv_fixed, node_spacing(uv_fixed, seg), config.trace_grading, box2)
+    h2 = _face_size(h_fn, axis, uv_fixed, feature_spacing(uv_fixed, seg, box2), config.trace_grading, box2)
     lat = _interior_nodes(uv_fixed, seg, h2, box2, config.face_clearance)
     uv = np.vstack([uv_fixed, lat])
     nf = len(uv_fixed)
