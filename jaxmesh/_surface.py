@@ -68,7 +68,7 @@ class SurfaceConfig:
     snap_fraction: float = 0.3
     improve_rounds: int = 2
     newton_steps: int = 8
-    truss: TrussConfig = TrussConfig(dt=0.05, max_iterations=30, max_retriangulations=2, newton_steps=3, max_dt_retries=0,
+    truss: TrussConfig = TrussConfig(dt=0.05, max_iterations=30, max_retriangulations=2, newton_steps=1, max_dt_retries=0,
                                      retriangulate_tol=0.3, scan_chunk=30)
     face_truss: TrussConfig = TrussConfig(dt=0.2, max_iterations=40, max_retriangulations=4)
     face_clearance: float = 0.6
@@ -220,7 +220,7 @@ def enclosed_volume(points: np.ndarray, tris: np.ndarray) -> float:
     return float(np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6.0)
 
 
-def _relax(points, tris, on_plane, phi_fn, h_fn, box, truss: TrussConfig, cut: bool):
+def _relax(points, tris, on_plane, phi_fn, h_fn, box, truss: TrussConfig, cut: bool, newton_steps: int):
     """Truss relaxation on the surface; flips (not across a box plane) are the retriangulation.
     Nodes on one box plane slide along their trace, nodes on two planes are fixed."""
     n = len(points)
@@ -243,7 +243,9 @@ def _relax(points, tris, on_plane, phi_fn, h_fn, box, truss: TrussConfig, cut: b
         return state["tris"]
 
     res = relax(p, triangulate, h_fn, cons, surface_phi_fn=phi_fn, config=truss)
-    return np.array(res.points[:n]), state["tris"], res
+    # the steps project loosely (truss.newton_steps); converge onto phi = 0 once at the end
+    q, _, _ = project(phi_fn, np.array(res.points[:n]), on_plane | fixed[:n, None], newton_steps)
+    return q, state["tris"], res
 
 
 def folded(points, tris, phi_fn) -> np.ndarray:
@@ -283,7 +285,7 @@ def improve(points, tris, on_plane, phi_fn, h_fn, box, config: SurfaceConfig, cu
         worst = min_angles(points, tris).min()
         for attempt in range(2):
             cfg = truss if attempt == 0 else dataclasses.replace(truss, dt=truss.dt * truss.dt_retry_factor)
-            q, t, _ = _relax(points, tris, on_plane, phi_fn, h_fn, box, cfg, cut)
+            q, t, _ = _relax(points, tris, on_plane, phi_fn, h_fn, box, cfg, cut, config.newton_steps)
             if not folded(q, t, phi_fn).any() and min_angles(q, t).min() >= min(worst, _KEEP_ANGLE):
                 points, tris = q, t
                 break
