@@ -267,7 +267,7 @@ def improve(points, tris, on_plane, phi_fn, h_fn, box, config: SurfaceConfig, cu
     """
     truss = config.truss
     for _ in range(config.improve_rounds):
-        points, tris, on_plane = _collapse_short(points, tris, on_plane, h_fn, config.collapse_ratio)
+        points, tris, on_plane = _collapse_short(points, tris, on_plane, h_fn, config.collapse_ratio, config.refine_ratio)
         edges, _ = half_edges(tris, len(points))
         length = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
         h_mid = evaluate_size(h_fn, 0.5 * (points[edges[:, 0]] + points[edges[:, 1]]))
@@ -292,7 +292,7 @@ def improve(points, tris, on_plane, phi_fn, h_fn, box, config: SurfaceConfig, cu
     return points, tris, on_plane
 
 
-def _collapse_short(points, tris, on_plane, h_fn, ratio: float, passes: int = 3):
+def _collapse_short(points, tris, on_plane, h_fn, ratio: float, refine_ratio: float, passes: int = 3):
     """Collapse edges shorter than ratio * h, and the shortest edge of needles (a triangle below
     20 degrees) when it is under 0.8 h: relaxation alone does not separate two close nodes."""
     for _ in range(passes):
@@ -304,7 +304,7 @@ def _collapse_short(points, tris, on_plane, h_fn, ratio: float, passes: int = 3)
         if needle.any():
             shortest = tri_edge[needle, np.argmin(length[tri_edge[needle]], axis=1)]
             short[shortest[length[shortest] < 0.8 * h_mid[shortest]]] = True
-        points, tris, on_plane, done = collapse_edges(points, tris, on_plane, short)
+        points, tris, on_plane, done = collapse_edges(points, tris, on_plane, short, refine_ratio * h_mid)
         if done == 0:
             break
     return points, tris, on_plane

@@ -234,17 +234,20 @@ def straddling(points: np.ndarray, tris: np.ndarray, box) -> np.ndarray:
     return ((p < lo) | (p > hi)).any(axis=(1, 2))
 
 
-def collapse_edges(points, tris, on_plane, short: np.ndarray, *, min_cos: float = 0.5, min_quality: float = 0.2):
+def collapse_edges(points, tris, on_plane, short: np.ndarray, max_length: np.ndarray | None = None, *,
+                   min_cos: float = 0.5, min_quality: float = 0.2):
     """Collapse the marked edges (shortest first) by removing one end vertex into the other.
 
     The removed vertex's box planes must be planes of the kept one, so traces and box edges stay
     put. A collapse is skipped when it would break the manifold (the ends share a neighbour other
     than the two opposite vertices, or an opposite vertex drops to degree 3), turn a triangle by
     more than acos(min_cos) or leave one below min_quality. One vertex star changes at most once
-    per call; the caller iterates.
+    per call; the caller iterates. With max_length, a collapse that would make an edge longer than
+    that of the collapsed edge is skipped (refinement would split it again: the mesh would coarsen).
 
     Args:
         points: (n, 3). tris: (t, 3). on_plane: (n, 3) bool. short: (e,) bool over ``half_edges(tris, n)[0]``.
+        max_length: optional (e,) longest edge a collapse of each edge may create.
     Returns:
         (points, tris, on_plane) with the removed vertices dropped, and the number of collapses.
     """
@@ -282,6 +285,10 @@ def collapse_edges(points, tris, on_plane, short: np.ndarray, *, min_cos: float 
                 continue  # the link condition: the collapse would pinch the surface
             if min(sum(alive[t] for t in star[w]) for w in opposite) <= 3:
                 continue
+            if max_length is not None:
+                ring = np.fromiter(ring_drop - {keep, drop}, np.int64)
+                if np.linalg.norm(points[ring] - points[keep], axis=1).max() > max_length[e]:
+                    continue
             moved = [t for t in around if t not in on_edge]
             old = np.array([tri[t] for t in moved])
             new = np.where(old == drop, keep, old)

@@ -68,7 +68,7 @@ def test_sphere_pole_on_a_box_edge():
     ms = Microstructure.from_functions([sphere_sdf(s.center, float(s.axes[0])) for s in specs], (1.0, 1.0, 1.0),
                                        (24, 24, 24))
     mesh = mesh_rve(ms, MeshConfig(h=0.12))
-    _check(mesh, ms, specs, volume_tol=0.1)
+    _check(mesh, ms, specs, volume_tol=0.2)  # h / r = 0.8: chords cut ~ (h / r)^2 / 4 = 16 %
 
 
 def test_two_spheres_one_grid_step_apart():
