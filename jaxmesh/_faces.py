@@ -8,6 +8,8 @@ registered by its exact coordinates, and periodic copies are built as exact tran
 
 from __future__ import annotations
 
+import dataclasses
+
 import time
 
 import equinox as eqx
@@ -299,9 +301,15 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
     tri_fn = lambda p: constrained_delaunay(p, seg)  # noqa: E731
     if len(lat):
         cons = make_constraints(len(uv), 2, fixed=np.arange(nf))
-        res = relax(uv, tri_fn, h2, cons, config=config.face_truss, box=box2)
-        uv = np.array(res.points)
-        uv[:nf] = uv_fixed
+        truss = config.face_truss
+        for cfg in (truss, dataclasses.replace(truss, dt=truss.dt * truss.dt_retry_factor)):
+            try:
+                res = relax(uv, tri_fn, h2, cons, config=cfg, box=box2)
+            except MeshingError:  # a free node stepped onto a trace: back off, finally keep the lattice
+                continue
+            uv = np.array(res.points)
+            uv[:nf] = uv_fixed
+            break
     tri = tri_fn(uv)
     tri, _ = improve_by_flips(uv, tri, seg)
     uv, tri = _refine_face(uv, tri, seg, nf, h2, box2, config.face_min_angle)
