@@ -68,8 +68,9 @@ class SurfaceConfig:
     snap_fraction: float = 0.3
     improve_rounds: int = 2
     newton_steps: int = 8
-    truss: TrussConfig = TrussConfig(dt=0.05, max_iterations=30, max_retriangulations=2, newton_steps=1, max_dt_retries=0,
-                                     retriangulate_tol=0.3, scan_chunk=30)
+    # dt 0.2 hit the retriangulation limit within ~5 steps; improve() does the dt retry
+    truss: TrussConfig = TrussConfig(dt=0.05, max_iterations=30, max_retriangulations=2, newton_steps=1,
+                                     max_dt_retries=0, retriangulate_tol=0.3, scan_chunk=30)
     face_truss: TrussConfig = TrussConfig(dt=0.2, max_iterations=40, max_retriangulations=4)
     face_clearance: float = 0.6
     trace_grading: float = 0.3
@@ -222,7 +223,8 @@ def enclosed_volume(points: np.ndarray, tris: np.ndarray) -> float:
 
 def _relax(points, tris, on_plane, phi_fn, h_fn, box, truss: TrussConfig, cut: bool, newton_steps: int):
     """Truss relaxation on the surface; flips (not across a box plane) are the retriangulation.
-    Nodes on one box plane slide along their trace, nodes on two planes are fixed."""
+    Nodes on one box plane slide along their trace, nodes on two planes are fixed; the result is
+    projected onto phi = 0 with newton_steps Newton iterations."""
     n = len(points)
     cap = bucket_capacity(n)
     p = np.vstack([points, np.repeat(points[:1], cap - n, axis=0)])
@@ -260,14 +262,17 @@ _KEEP_ANGLE = 25.0  # degrees: a relaxation may lower the smallest angle only do
 
 
 def improve(points, tris, on_plane, phi_fn, h_fn, box, config: SurfaceConfig, cut: bool):
-    """Rounds of 1-to-4 refinement (edges > refine_ratio * h), quality flips and truss relaxation.
+    """Rounds of edge collapses (edges < collapse_ratio * h, needles), 1-to-4 refinement (edges >
+    refine_ratio * h), quality flips and truss relaxation.
 
     A relaxation that folds a triangle, or takes the smallest angle below both its old value and
-    _KEEP_ANGLE, is retried with dt / 5 and otherwise dropped (back off, never delete triangles). Returns (points, tris, on_plane).
+    _KEEP_ANGLE, is retried with dt / 5 and otherwise dropped (back off, never delete triangles).
+    Returns (points, tris, on_plane).
     """
     truss = config.truss
     for _ in range(config.improve_rounds):
-        points, tris, on_plane = _collapse_short(points, tris, on_plane, h_fn, config.collapse_ratio, config.refine_ratio)
+        points, tris, on_plane = _collapse_short(points, tris, on_plane, h_fn, config.collapse_ratio,
+                                                 config.refine_ratio)
         edges, _ = half_edges(tris, len(points))
         length = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
         h_mid = evaluate_size(h_fn, 0.5 * (points[edges[:, 0]] + points[edges[:, 1]]))

@@ -382,7 +382,8 @@ def _attempt(p0, cons, triangulate_fn, h_fn, h_params, phi_fn, phi_params, confi
     # NumPy scalars: no eager JAX dispatch per chunk (they are traced, so dt retries reuse the scan)
     scalars = {
         "dt": np.asarray(dt, dtype), "fscale": np.asarray(config.fscale, dtype),
-        "ramp": np.asarray(config.alpha_ramp_iterations, np.int32), "alpha_start": np.asarray(config.alpha_start, dtype),
+        "ramp": np.asarray(config.alpha_ramp_iterations, np.int32),
+        "alpha_start": np.asarray(config.alpha_start, dtype),
         "stop_tol": np.asarray(config.stop_tol, dtype), "retri_tol": np.asarray(config.retriangulate_tol, dtype),
         "max_it": np.asarray(config.max_iterations, np.int32), "lo": lo, "hi": hi,
         "bv_k": np.asarray(config.ball_vertex_stiffness, dtype), "bv_q": np.asarray(config.ball_vertex_quality, dtype),
