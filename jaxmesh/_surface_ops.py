@@ -234,6 +234,13 @@ def straddling(points: np.ndarray, tris: np.ndarray, box) -> np.ndarray:
     return ((p < lo) | (p > hi)).any(axis=(1, 2))
 
 
+def _in_one_plane(points, on_plane, tris) -> np.ndarray:
+    """(t,) bool: triangles whose three vertices lie on one box plane (same axis, same value)."""
+    flags = on_plane[tris].all(axis=1)
+    p = points[tris]
+    return (flags & (p[:, 0] == p[:, 1]) & (p[:, 1] == p[:, 2])).any(axis=1)
+
+
 def collapse_edges(points, tris, on_plane, short: np.ndarray, max_length: np.ndarray | None = None, *,
                    min_cos: float = 0.5, min_quality: float = 0.2):
     """Collapse the marked edges (shortest first) by removing one end vertex into the other.
@@ -241,9 +248,10 @@ def collapse_edges(points, tris, on_plane, short: np.ndarray, max_length: np.nda
     The removed vertex's box planes must be planes of the kept one, so traces and box edges stay
     put. A collapse is skipped when it would break the manifold (the ends share a neighbour other
     than the two opposite vertices, or an opposite vertex drops to degree 3), turn a triangle by
-    more than acos(min_cos) or leave one below min_quality. One vertex star changes at most once
-    per call; the caller iterates. With max_length, a collapse that would make an edge longer than
-    that of the collapsed edge is skipped (refinement would split it again: the mesh would coarsen).
+    more than acos(min_cos), leave one below min_quality or lay one flat on a box plane (the piece
+    beyond it would vanish with its trace). One vertex star changes at most once per call; the
+    caller iterates. With max_length, a collapse that would make an edge longer than max_length
+    is skipped (refinement would split it again: the mesh would coarsen).
 
     Args:
         points: (n, 3). tris: (t, 3). on_plane: (n, 3) bool. short: (e,) bool over ``half_edges(tris, n)[0]``.
@@ -292,6 +300,8 @@ def collapse_edges(points, tris, on_plane, short: np.ndarray, max_length: np.nda
             moved = [t for t in around if t not in on_edge]
             old = np.array([tri[t] for t in moved])
             new = np.where(old == drop, keep, old)
+            if _in_one_plane(points, on_plane, new).any():
+                continue  # a piece beyond a plane would fold flat onto it and lose its trace
             if (np.sum(_normals(points[old]) * _normals(points[new]), axis=1) < min_cos).any() or (
                 cell_quality(points, new) < min_quality
             ).any():

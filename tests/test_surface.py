@@ -81,6 +81,18 @@ def test_collapse_removes_short_edges_and_keeps_traces(sphere):
     assert enclosed_volume(q3, t3) == pytest.approx(enclosed_volume(q, t2), rel=0.02)
 
 
+def test_collapse_keeps_a_small_cap_beyond_a_plane(sphere):
+    # the plane x = 0.69 leaves a cap of a few triangles beyond it; collapsing its apex into a trace
+    # vertex would lay a triangle flat on the plane and drop the trace's translate on the other face
+    phi, p, t = sphere
+    q, t2, flags, _ = cut_plane(p, t, np.zeros(p.shape, bool), 0, 0.69)
+    for _ in range(6):
+        q, t2, flags, _ = collapse_edges(q, t2, flags, np.ones(len(half_edges(t2, len(q))[0]), bool))
+    assert _closed(t2)
+    on_x = flags[t2, 0].all(axis=1) & (q[t2][:, :, 0] == 0.69).all(axis=1)
+    assert not on_x.any() and (q[:, 0] > 0.69).any()
+
+
 def test_sphere_at_r_over_6():
     r = 0.2
     ms = Microstructure.from_functions([sphere_sdf(np.array([0.5, 0.5, 0.5]), r)], (1.0, 1.0, 1.0), (32, 32, 32))
