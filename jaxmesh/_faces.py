@@ -9,7 +9,6 @@ registered by its exact coordinates, and periodic copies are built as exact tran
 from __future__ import annotations
 
 import dataclasses
-
 import time
 
 import equinox as eqx
@@ -133,7 +132,7 @@ def trace_spacing(P: np.ndarray, iface_tris: np.ndarray, box) -> tuple[np.ndarra
     pu, pv = P[e[:, 0]], P[e[:, 1]]
     same = ((pu == 0.0) & (pv == 0.0)) | ((pu == L) & (pv == L))
     seg = e[same.any(axis=1)]
-    sp = np.where(np.isfinite(node_spacing(P, seg)), feature_spacing(P, seg, box), np.inf)
+    sp = feature_spacing(P, seg, box)  # inf off the traces
     nodes = np.flatnonzero(np.isfinite(sp))
     return nodes, sp[nodes]
 
