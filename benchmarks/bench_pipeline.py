@@ -22,8 +22,9 @@ nor its narrowness setting, so the presets are chosen to land near those counts:
   coarse iis 0.05, nb_el 0.75; fine iis 0.03, nb_el 1 (one element across the narrowest gaps).
   nb_el 0.5 would come nearer 300k tets, but the surface stage failed on it (seed 0: a trace on
   x = 0 without its translate on x = L; seed 1: 3 intersecting triangle pairs), 2026-11-28.
-  Measured: the coarse preset gives 774k tets for a predicted 360k (factor 2.15), the fine
-  preset's volume step did not finish (surface triangles left missing after 12 recovery rounds);
+  Measured at commit cc69cdd: the coarse preset gave 774k tets for a predicted 360k (factor 2.15);
+  the fine preset's volume step did not finish (surface triangles left missing after 12 recovery
+  rounds), nor, at 879b6c9, the coarse one;
   see benchmarks/README.md. `--estimate` prints the predicted count of a setting without meshing.
 
 Prints per-stage times (size, surfaces, volume sub-stages: interior nodes, Delaunay + recovery,
@@ -127,7 +128,7 @@ def run(args) -> None:
 
     from jaxmesh import MeshConfig, load_input, microstructure_from_specs, quality_report, random_inclusions
     from jaxmesh._faces import mesh_surfaces
-    from jaxmesh._sizing import SizeParams, size_function
+    from jaxmesh._sizing import SizeParams, predicted_element_count, size_function
     from jaxmesh._validate import validate
     from jaxmesh._volume import tetrahedralize
     from jaxmesh._volume_recover import levelset_projector
@@ -156,7 +157,7 @@ def run(args) -> None:
         h_np = lambda p: np.asarray(field(jnp.asarray(p, dtype=field.values.dtype)))  # noqa: E731
     rows.append((f"size function (h in [{h_values.min():.4f}, {h_values.max():.4f}])",
                  f"{time.perf_counter() - t:.2f}", peak_rss_gb()))
-    predicted = float(6 * np.sqrt(2) * np.prod(ms.box) * np.mean(h_values.astype(float) ** -3))
+    predicted = float(predicted_element_count(h_values, ms.box))
     if args.estimate:
         print(f"predicted count (c * integral h^-3): {predicted:.0f}; {len(ms.inclusions)} inclusions, "
               f"volume fraction {ms.volume_fraction():.4f}, iis {args.iis}, nb_el {args.nb_el}")

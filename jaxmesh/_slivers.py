@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._quality import TET_EDGES, dihedral_angles
-from ._volume_recover import triangle_keys
+from ._volume_recover import in_sorted, triangle_keys
 
 __all__ = ["min_dihedral", "tet_quality", "colour_classes", "smooth_vertices", "improve_topology",
            "insert_steiner"]
@@ -339,7 +339,7 @@ def _flip_gain(old: np.ndarray, new: np.ndarray, qbar: float) -> np.ndarray:
 def _protected_rows(faces: np.ndarray, protected: np.ndarray, n: int) -> np.ndarray:
     """(k,) bool: some triangle of faces (k, j, 3) is protected."""
     keys = triangle_keys(faces.reshape(-1, 3), n).reshape(faces.shape[:2])
-    return _in_sorted(keys, protected).any(axis=1)
+    return in_sorted(keys, protected).any(axis=1)
 
 
 def _chain(pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -377,7 +377,7 @@ def _face_candidates(points, cells, q, bad, protected, fkeys, fowner):
     apex = cells[bad].reshape(-1)  # face k of a tet is the one opposite its vertex k
     key = triangle_keys(faces, n)
     lo, hi = np.searchsorted(fkeys, key), np.searchsorted(fkeys, key, side="right")
-    ok = (hi - lo == 2) & ~_in_sorted(key, protected)
+    ok = (hi - lo == 2) & ~in_sorted(key, protected)
     faces, t, apex, lo = faces[ok], t[ok], apex[ok], lo[ok]
     a, b = fowner[lo], fowner[lo + 1]
     nb = np.where(a == t, b, a)
@@ -408,7 +408,7 @@ def improve_topology(points: np.ndarray, cells: np.ndarray, protected: np.ndarra
     """
     n = len(points)
     cells = np.asarray(cells, dtype=np.int64).copy()
-    protected = np.unique(np.asarray(protected, dtype=np.int64))  # sorted: `_in_sorted`
+    protected = np.unique(np.asarray(protected, dtype=np.int64))  # sorted: `in_sorted`
     total = 0
     for _ in range(passes):
         q = tet_quality(points[cells])
@@ -445,7 +445,7 @@ def _cavity(points, cells, dead, fkeys, fowner, protected, seed, x):
     cav, todo, seen = [seed], [seed], {seed}
     while todo:
         keys = triangle_keys(cells[todo.pop()][_FACES], n)
-        for key in keys[~_in_sorted(keys, protected)]:
+        for key in keys[~in_sorted(keys, protected)]:
             lo, hi = np.searchsorted(fkeys, key), np.searchsorted(fkeys, key, side="right")
             for nb in (int(v) for v in fowner[lo:hi]):
                 if nb in seen:
@@ -466,7 +466,7 @@ def _fill_cavity(points, cells, cav, x, protected):
     n = len(points)
     keys = triangle_keys(cells[cav][:, _FACES].reshape(-1, 3), n)
     uniq, count = np.unique(keys, return_counts=True)
-    if _in_sorted(uniq[count == 2], protected).any():
+    if in_sorted(uniq[count == 2], protected).any():
         return None
     t, k = np.nonzero(np.isin(keys, uniq[count == 1]).reshape(-1, 4))
     star = cells[cav][t].copy()
@@ -494,7 +494,7 @@ def insert_steiner(points: np.ndarray, cells: np.ndarray, protected: np.ndarray,
     """
     n = len(points)
     cells = np.asarray(cells, dtype=np.int64)
-    protected = np.unique(np.asarray(protected, dtype=np.int64))  # sorted: `_in_sorted`
+    protected = np.unique(np.asarray(protected, dtype=np.int64))  # sorted: `in_sorted`
     fkeys, fowner = _sorted_keys(cells[:, _FACES], n)
     dead = np.zeros(len(cells), bool)
     new, added = [], []
@@ -503,7 +503,7 @@ def insert_steiner(points: np.ndarray, cells: np.ndarray, protected: np.ndarray,
             continue
         seeds = [t]
         for key in triangle_keys(cells[t][_FACES], n):
-            if not _in_sorted(key, protected):
+            if not in_sorted(key, protected):
                 lo, hi = np.searchsorted(fkeys, key), np.searchsorted(fkeys, key, side="right")
                 seeds += [int(s) for s in fowner[lo:hi] if s != t]
         best = None
@@ -537,11 +537,3 @@ def _quality_with(points, new, x, star):
     p = np.where((star < n)[..., None], points[np.minimum(star, n - 1)], extra[np.maximum(star - n, 0)])
     return tet_quality(p).min()
 
-
-def _in_sorted(keys, sorted_keys: np.ndarray) -> np.ndarray:
-    """np.isin(keys, sorted_keys) by binary search (np.isin sorts sorted_keys again on every call)."""
-    keys = np.asarray(keys)
-    if not len(sorted_keys):
-        return np.zeros(keys.shape, bool)
-    at = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
-    return sorted_keys[at] == keys

@@ -44,12 +44,16 @@ def tet_face_keys(cells: np.ndarray, n: int) -> np.ndarray:
 
 def missing_triangles(triangles: np.ndarray, cells: np.ndarray, n: int) -> np.ndarray:
     """(t,) bool: surface triangles that are not a face of any tet."""
-    faces = tet_face_keys(cells, n)  # sorted unique
-    keys = triangle_keys(triangles, n)
-    if not len(faces):
-        return np.ones(len(keys), bool)
-    at = np.minimum(np.searchsorted(faces, keys), len(faces) - 1)  # binary search: np.isin re-sorts both
-    return faces[at] != keys
+    return ~in_sorted(triangle_keys(triangles, n), tet_face_keys(cells, n))  # the face keys are sorted unique
+
+
+def in_sorted(keys, sorted_keys: np.ndarray) -> np.ndarray:
+    """np.isin(keys, sorted_keys) by binary search (np.isin sorts sorted_keys again on every call)."""
+    keys = np.asarray(keys)
+    if not len(sorted_keys):
+        return np.zeros(keys.shape, bool)
+    at = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+    return sorted_keys[at] == keys
 
 
 def point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
