@@ -90,8 +90,8 @@ def distance_to_surface(points: np.ndarray, surface: SurfaceMesh, radius: np.nda
 
     Triangles are grouped by octave of their reach (largest centroid-vertex distance), one KD-tree
     each: with one global reach, the large box-face triangles of a graded surface made every point
-    pair with thousands of small interface triangles (tens of GB on a 200-inclusion RVE). Points go
-    in chunks and candidate pairs in batches, so memory stays bounded.
+    pair with thousands of small interface triangles (the likely cause of a 200-inclusion RVE running
+    out of 24 GB). Points go in chunks and candidate pairs in batches, so memory stays bounded.
     """
     points = np.asarray(points, dtype=float).reshape(-1, 3)
     radius = np.broadcast_to(np.asarray(radius, dtype=float), (len(points),))
