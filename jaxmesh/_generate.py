@@ -12,6 +12,7 @@ the direction is found by Newton steps on the sphere; undecided pairs are reject
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import tempfile
@@ -190,6 +191,47 @@ def _ellipsoid_gap(delta, mi, mj, gap=None, u0=None, max_iter: int = 30):
     return (ok if gap is not None else best_f), out
 
 
+def _box_clearance(x: np.ndarray, mats: np.ndarray, box: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Distances from the box planes to the ends of the inclusions' extents in every box section.
+
+    For centres x (K, d) and shape matrices mats (K, d, d) = R diag(a^2) R^T: along each axis c, the
+    extent of the inclusion itself and of its sections with the box planes / box edges it meets
+    (x_S = 0 or L_S for axis sets S without c) ends somewhere; an end within the gap of a plane
+    x_c = 0 or L is a cap, a trace or an edge crossing thinner than the gap. The section of
+    {y^T mats^-1 y <= 1} at y_S = t spans mean +- w along c, with (N = mats restricted to S + c)
+    mean = N_cS N_SS^-1 t and w^2 = (N_cc - N_cS N_SS^-1 N_Sc)(1 - t N_SS^-1 t).
+
+    Returns:
+        dist (K, m): distance of every end to its plane (inf where the section does not exist),
+        axis (m,): the axis c of each column, away (K, m): +-1, the direction along c that moves
+        the end away from its plane.
+    """
+    k, d = x.shape
+    dists, axes, signs = [], [], []
+    for c in range(d):
+        others = [a for a in range(d) if a != c]
+        for s in range(len(others) + 1):
+            for sub in itertools.combinations(others, s):
+                S = list(sub)
+                nss = mats[:, S][:, :, S]
+                ncs = mats[:, c, S]
+                gain = np.linalg.solve(nss, ncs[..., None])[..., 0] if S else np.zeros((k, 0))
+                var = np.maximum(mats[:, c, c] - np.sum(gain * ncs, axis=1), 0.0)
+                for planes in itertools.product((0.0, 1.0), repeat=len(S)):
+                    t = np.asarray(planes) * box[S] - x[:, S]  # the plane, seen from the centre
+                    sol = np.linalg.solve(nss, t[..., None])[..., 0] if S else t
+                    inside = np.sum(t * sol, axis=1)
+                    w = np.sqrt(var * np.maximum(1.0 - inside, 0.0))
+                    mid = x[:, c] + np.sum(gain * t, axis=1)
+                    for end in (mid - w, mid + w):
+                        for q in (0.0, box[c]):
+                            off = end - q
+                            dists.append(np.where(inside < 1.0, np.abs(off), np.inf))
+                            axes.append(c)
+                            signs.append(np.where(off >= 0, 1.0, -1.0))
+    return np.stack(dists, 1), np.asarray(axes), np.stack(signs, 1)
+
+
 def _shape_matrices(axes, rots):
     return np.einsum("...ij,...j,...kj->...ik", rots, axes * axes, rots)
 
@@ -197,8 +239,8 @@ def _shape_matrices(axes, rots):
 class _Packing:
     """Placed inclusions with a periodic cell list (spatial hash) and the exact gap test."""
 
-    def __init__(self, box, axes, rots, gap, is_sphere: bool):
-        self.box, self.gap, self.dim = box, gap, box.shape[0]
+    def __init__(self, box, axes, rots, gap, is_sphere: bool, box_gap: float = 0.0):
+        self.box, self.gap, self.box_gap, self.dim = box, gap, box_gap, box.shape[0]
         self.axes, self.rots, self.is_sphere = axes, rots, is_sphere
         self.mats = _shape_matrices(axes, rots)
         self.amax, self.amin = axes.max(1), axes.min(1)
@@ -227,12 +269,17 @@ class _Packing:
         row[free[0]] = i
 
     def feasible(self, i, x) -> np.ndarray:
-        """Whether inclusion i centred at each of x (K, d) keeps the gap to all placed others."""
+        """Whether inclusion i centred at each of x (K, d) keeps the gap to all placed others and
+        box_gap to the box planes, edges and corners."""
         k = x.shape[0]
+        ok = np.ones(k, bool)
+        if self.box_gap > 0:
+            dist, _, _ = _box_clearance(wrap(x, self.box), np.broadcast_to(self.mats[i], (k, self.dim, self.dim)),
+                                        self.box)
+            ok = dist.min(axis=1) >= self.box_gap
         idx = np.floor(wrap(x, self.box) * (self.nc / self.box)).astype(int) % self.nc
         nb = self.members[((idx[:, None, :] + self.offsets[None]) % self.nc) @ self.strides].reshape(k, -1)
         kk, jj = np.nonzero((nb >= 0) & (nb != i))
-        ok = np.ones(k, bool)
         if kk.size == 0:
             return ok
         j = nb[kk, jj]
@@ -266,10 +313,11 @@ class _Packing:
         return ok
 
 
-def _relax(box, axes, mats, x, gap, is_sphere, max_iter):
+def _relax(box, axes, mats, x, gap, is_sphere, max_iter, box_gap=0.0):
     """Force-biased overlap removal: every pair closer than the gap (plus a small slack) is pushed
     apart along its separating direction, shared by volume (small ones move more), all pairs at
-    once. Returns the wrapped centres (N, d), or None if pairs still overlap after max_iter."""
+    once; an inclusion whose cap, trace or edge crossing ends within box_gap of a box plane moves
+    along that plane's axis, to the nearer side. Returns the wrapped centres (N, d), or None if pairs still overlap after max_iter."""
     from scipy.spatial import cKDTree
 
     n, d = x.shape
@@ -304,10 +352,15 @@ def _relax(box, axes, mats, x, gap, is_sphere, max_iter):
             prev_key, prev_u = key[order], u[order]
         push = target - f
         bad = push > slack
-        if not bad.any():
+        disp = np.zeros_like(x)
+        if box_gap > 0:
+            end_dist, end_axis, away = _box_clearance(x, mats, box)
+            move = np.where(end_dist < box_gap + slack, (box_gap + 2 * slack - end_dist) * away, 0.0)
+            for c in range(d):
+                disp[:, c] += move[:, end_axis == c].sum(axis=1)
+        if not bad.any() and not disp.any():
             return x
         share = weight[j] / (weight[i] + weight[j])
-        disp = np.zeros_like(x)
         np.add.at(disp, i[bad], (push * share)[bad, None] * u[bad])
         np.add.at(disp, j[bad], -(push * (1 - share))[bad, None] * u[bad])
         x = x + disp
@@ -358,6 +411,7 @@ def random_inclusions(
     radius=(0.08, 0.02),
     aspect=(1.0, 2.0),
     min_gap: float = 0.0,
+    box_gap: float | None = None,
     seed: int = 0,
     max_attempts: int = 500,
     tol: float = 0.005,
@@ -379,6 +433,10 @@ def random_inclusions(
             [max(mean - 2 std, mean / 4), mean + 2 std], or a callable (rng, n) -> (n,) radii.
         aspect: largest / smallest semi-axis of ellipsoids, uniform in [aspect[0], aspect[1]] (or a float).
         min_gap: guaranteed minimum distance between inclusion surfaces, also across periodic faces.
+        box_gap: guaranteed clearance from the box (None: min_gap): every cap cut off by a box plane,
+            every trace on a box face and every crossing of a box edge either extends at least box_gap
+            past the plane, edge or corner it approaches or stays box_gap away from it, so the mesh
+            never needs elements thinner than box_gap there. 0 places inclusions anywhere.
         seed: random seed (same seed, same result).
         max_attempts: random positions tried per inclusion before it is left to densification.
         tol: accepted |reached - target| volume fraction (the pool is drawn to hit the target).
@@ -410,6 +468,9 @@ def random_inclusions(
         )
     if not np.isfinite(min_gap) or min_gap < 0:
         raise ValueError(f"min_gap: expected a finite value >= 0, got {min_gap!r}. Hint: 0 allows touching.")
+    box_gap = float(min_gap) if box_gap is None else box_gap
+    if not np.isfinite(box_gap) or box_gap < 0:
+        raise ValueError(f"box_gap: expected a finite value >= 0 (or None: min_gap), got {box_gap!r}.")
     if not tol > 0 or max_attempts < 1:
         raise ValueError(f"tol > 0 and max_attempts >= 1 expected, got {tol!r}, {max_attempts!r}.")
     lo_k, hi_k = (float(aspect),) * 2 if np.ndim(aspect) == 0 else (float(aspect[0]), float(aspect[1]))
@@ -432,7 +493,7 @@ def random_inclusions(
     rots = np.stack([_random_rotation(rng, dim) if shape == "ellipsoid" else np.eye(dim) for _ in axes])
     vols = _ball(dim) * np.prod(axes, axis=1)
 
-    pack = _Packing(box, axes, rots, float(min_gap), shape == "sphere")
+    pack = _Packing(box, axes, rots, float(min_gap), shape == "sphere", box_gap)
     committed, deferred, batch = 0.0, [], 32
     enough = target - (0.5 * tol if n is not None else 1e-12) * box_volume  # a fraction-only pool sums to target
     for i in range(len(axes)):
@@ -453,16 +514,16 @@ def random_inclusions(
         x = pack.centers.copy()
         x[deferred] = rng.uniform(0, 1, (len(deferred), dim)) * box
         relaxed = _relax(box, axes[used], pack.mats[used], x[used], float(min_gap), shape == "sphere",
-                         max_relax_iter)
+                         max_relax_iter, box_gap)
         if relaxed is None:
             raise MeshingError(
                 "random_inclusions",
                 f"jammed: RSA placed volume fraction {vols[pack.placed].sum() / box_volume:.4f} "
                 f"({int(pack.placed.sum())} inclusions); {len(deferred)} more (up to {fraction:.4f}) could not be "
-                f"separated by {min_gap} within {max_relax_iter} relaxation iterations. Hint: broaden the size "
+                f"separated by {min_gap} (box clearance {box_gap}) within {max_relax_iter} relaxation iterations. Hint: broaden the size "
                 "distribution, lower the fraction or the gap, or raise max_relax_iter.",
             )
-        pack = _Packing(box, axes, rots, float(min_gap), shape == "sphere")
+        pack = _Packing(box, axes, rots, float(min_gap), shape == "sphere", box_gap)
         for q, i in enumerate(used):
             pack.insert(i, relaxed[q])
         bad = [int(i) for i in used if not pack.feasible(i, pack.centers[i][None])[0]]

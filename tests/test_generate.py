@@ -154,6 +154,71 @@ def test_densification_keeps_the_gap(monkeypatch):
     assert _ellipsoid_min_gap(ell, box, 0.01) >= 0.01 - 1e-9
 
 
+def _section_ends_by_grid(center, mat, c, S, planes, n=801):
+    """Min and max of x_c over the ellipsoid {(x - center)^T mat^-1 (x - center) <= 1} with x_S = planes,
+    by a fine grid over the remaining axes and the exact roots of the quadratic in x_c (an independent
+    route to _box_clearance's conditional-ellipsoid formula); None if the section is empty."""
+    inv = np.linalg.inv(mat)
+    rest = [a for a in range(3) if a != c and a not in S]
+    reach = np.sqrt(np.diag(mat))
+    y = np.zeros((n ** len(rest), 3))
+    y[:, S] = np.asarray(planes) - center[S]
+    if rest:
+        axes = [np.linspace(-reach[a], reach[a], n) for a in rest]
+        y[:, rest] = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(rest))
+    # inv_cc z^2 + 2 z b + q - 1 = 0 with z = y_c
+    b = y @ inv[:, c]
+    q = np.einsum("pi,ij,pj->p", y, inv, y)
+    disc = b * b - inv[c, c] * (q - 1.0)
+    if not np.any(disc >= 0):
+        return None
+    root = np.sqrt(disc[disc >= 0])
+    return center[c] + (-b[disc >= 0] - root).min() / inv[c, c], center[c] + (-b[disc >= 0] + root).max() / inv[c, c]
+
+
+def test_box_clearance_matches_sections_on_a_grid():
+    rng = np.random.default_rng(5)
+    box = np.array([1.0, 0.9, 1.1])
+    for _ in range(4):
+        axes = np.sort(rng.uniform(0.08, 0.2, 3))[::-1]
+        rot = gen._random_rotation(rng, 3)
+        mat = gen._shape_matrices(axes[None], rot[None])[0]
+        center = rng.uniform(-0.1, 0.1, 3) % box  # near a corner: sections by planes, edges and the corner
+        dist, axis, _ = gen._box_clearance(center[None], mat[None], box)
+        for c in range(3):
+            others = [a for a in range(3) if a != c]
+            expected = np.inf
+            for k in range(3):
+                for S in itertools.combinations(others, k):
+                    for planes in itertools.product(*[(0.0, box[a]) for a in S]):
+                        ends = _section_ends_by_grid(center, mat, c, list(S), planes)
+                        if ends is not None:
+                            expected = min(expected, *(abs(e - q) for e in ends for q in (0.0, box[c])))
+            np.testing.assert_allclose(dist[0, axis == c].min(), expected, atol=1e-5)
+
+
+@pytest.mark.parametrize("shape", ["sphere", "ellipsoid"])
+def test_inclusions_keep_clear_of_box_planes_edges_and_corners(shape):
+    kw = dict(volume_fraction=0.35, shape=shape, radius=(0.12, 0.03), min_gap=0.02, seed=1)
+    specs = random_inclusions((1, 1, 1), **kw)
+    loose = random_inclusions((1, 1, 1), box_gap=0.0, **kw)
+
+    def clearance(specs):
+        x = np.array([s.center for s in specs])
+        mats = gen._shape_matrices(np.array([s.axes for s in specs]), np.array([s.rotation for s in specs]))
+        return gen._box_clearance(x, mats, np.ones(3))[0].min(axis=1)
+
+    assert clearance(specs).min() >= 0.02 - 1e-9
+    assert clearance(loose).min() < 0.02  # without it some inclusion grazes the box (the check has teeth)
+    assert _cut_by_faces(specs, (1, 1, 1)) and abs(_fraction(specs, (1, 1, 1)) - 0.35) <= 0.005
+    # the plane part by sampled surfaces: every cap beyond a plane is deeper than the gap, or absent
+    for s in specs:
+        pts = np.stack([_surface(s, (t, p)) for t in np.linspace(0, np.pi, 60) for p in np.linspace(0, 6.3, 120)])
+        for lo, hi in zip((s.center + pts).min(0), (s.center + pts).max(0)):
+            for q in (0.0, 1.0):
+                assert min(abs(lo - q), abs(hi - q)) >= 0.02 - 2e-3
+
+
 def test_large_inclusions_checked_against_every_image():
     box = (1.0, 1.0)  # radius > L/4: a neighbour can come close through two of its images
     specs = random_inclusions(box, n=2, radius=0.26, min_gap=0.04, seed=0)
@@ -197,6 +262,7 @@ def test_jammed_fraction_raises_with_what_was_reached():
         (dict(volume_fraction=1.2), "volume_fraction"),
         (dict(volume_fraction=0.0), "volume_fraction"),
         (dict(n=5, min_gap=-0.01), "min_gap"),
+        (dict(n=5, box_gap=float("nan")), "box_gap"),
         (dict(n=5, shape="cube"), "shape"),
         (dict(), "n or volume_fraction"),
         (dict(n=0), "n: expected"),
