@@ -230,11 +230,21 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
         edges = np.stack([tris[np.arange(len(tris)), j], tris[np.arange(len(tris)), (j + 1) % 3]], 1)
         surface, added = split_edges(surface, edges, project_fn)
         info["surface_splits"] += int(added)
-    sides = surface.sides[miss]
-    k = int(sides[sides > 0][0]) if np.any(sides > 0) else None
+        if not added:  # the next round would be the same Delaunay: fail now, not after max_recovery_rounds
+            raise MeshingError("volume", f"{int(miss.sum())} surface triangles missing and none of their longest "
+                               "edges can be split inside the box (hint: an inclusion crossing a box plane by less "
+                               "than the surface resolution was meshed as not crossing it; move it off the plane or "
+                               "across it)", inclusion=_missing_inclusion(surface, miss))
     raise MeshingError("volume", f"{int(miss.sum())} surface triangles still missing and "
                        f"{dinfo['flat_interior']} flat tets after {config.max_recovery_rounds} recovery rounds "
-                       "(hint: improve the surface quality or raise max_recovery_rounds)", inclusion=k)
+                       "(hint: improve the surface quality or raise max_recovery_rounds)",
+                       inclusion=_missing_inclusion(surface, miss))
+
+
+def _missing_inclusion(surface: SurfaceMesh, miss: np.ndarray) -> int | None:
+    """The first inclusion that a missing triangle bounds, for the error message (None: box faces only)."""
+    sides = surface.sides[miss]
+    return int(sides[sides > 0][0]) if np.any(sides > 0) else None
 
 
 def label_cells(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh) -> tuple[np.ndarray, dict]:

@@ -192,13 +192,63 @@ def _plane_sides(x: np.ndarray, box: np.ndarray, tol: float = 1e-9) -> list[tupl
     return out
 
 
+_SPLIT_AT = (0.5, 0.375, 0.625, 0.25, 0.75)  # chord parameters tried, the midpoint first
+
+
+def _interface_split_point(project_fn: Callable, pu: np.ndarray, pv: np.ndarray, k_inc: int,
+                           common: list[tuple[int, int]], box: np.ndarray, tree: cKDTree) -> np.ndarray | None:
+    """A point of inclusion k_inc's level set that splits the chord (pu, pv) inside the box, or None.
+
+    An inclusion that crosses a box plane by less than the surface resolution was meshed as not
+    crossing it, yet its level set does: a projected midpoint near that cap lands beyond the plane,
+    outside the hull, and recovery diverged (the 200-sphere RVE); near a trace, a long chord's can too.
+    The chord points at _SPLIT_AT are projected (the planes both ends lie on, common: (axis, side)
+    pairs, pinned and locked) and the first that keeps every free coordinate at least half the chord
+    point's distance from the box planes wins. Else the axes it came too near are locked as well and
+    the projection redone within those planes, kept where the level set is steep there (it moved at
+    most twice as far as the free one; under a grazing cap it would move across the cap and fold the
+    surface). Else the free projection farthest inside the box, if by more than 1e-3 of the chord
+    (nearer would need elements that much smaller).
+    A point within a tiny distance of an existing node never wins: Qhull would drop the duplicate.
+    """
+    m = pu + np.asarray(_SPLIT_AT)[:, None] * (pv - pu)
+    locked = np.zeros(m.shape, dtype=bool)
+    for a, s in common:
+        m[:, a], locked[:, a] = s * box[a], True
+    inc = np.full(len(m), k_inc)
+    length = float(np.linalg.norm(pv - pu))
+    d_chord = np.minimum(m, box - m)
+
+    def too_near(q, fixed):  # (k, 3): free coordinates nearer a plane than half the chord point's
+        return ~fixed & (np.minimum(q, box - q) < 0.5 * d_chord)
+
+    def apart(q):
+        return tree.query(q)[0] > 1e-6 * length
+
+    q = np.asarray(project_fn(m, inc, locked), dtype=float)
+    near = too_near(q, locked)
+    ok = ~near.any(axis=1) & apart(q)
+    if ok.any():
+        return q[np.argmax(ok)]
+    in_plane = np.asarray(project_fn(m, inc, locked | near), dtype=float)
+    steep = np.linalg.norm(in_plane - m, axis=1) <= 2.0 * np.linalg.norm(q - m, axis=1)
+    ok = ~too_near(in_plane, locked | near).any(axis=1) & apart(in_plane) & steep
+    if ok.any():
+        return in_plane[np.argmax(ok)]
+    clearance = np.where(apart(q), np.where(locked, np.inf, np.minimum(q, box - q)).min(axis=1), -np.inf)
+    best = int(np.argmax(clearance))
+    return q[best] if clearance[best] > 1e-3 * length else None
+
+
 def split_edges(surface: SurfaceMesh, edges: np.ndarray, project_fn: Callable | None = None) -> tuple[SurfaceMesh, int]:
-    """Split surface edges at their midpoints, with their periodic images, keeping the surface consistent.
+    """Split surface edges (box edges at their midpoints) with their periodic images, keeping the surface consistent.
 
     Every triangle holding a split edge becomes two with the same orientation, sides and kind.
-    Interface edges: the midpoint is projected onto its inclusion's level set with project_fn
-    (box-plane coordinates locked). Box-face edges: the midpoint stays on the plane(s) and every
-    periodic image of the edge is split at the translated midpoint; periodic_pairs are extended.
+    Interface edges: split at a point of the chord projected onto its inclusion's level set with
+    project_fn (box-plane coordinates locked), the midpoint unless that leaves the box or nears a
+    box plane (`_interface_split_point`); an edge with no such point inside the box stays unsplit.
+    Box-face edges: the midpoint stays on the plane(s) and every periodic image of the edge is split
+    at the translated midpoint; periodic_pairs are extended.
 
     Args:
         surface: the SurfaceMesh. edges: (k, 2) node ids of surface edges.
@@ -218,6 +268,7 @@ def split_edges(surface: SurfaceMesh, edges: np.ndarray, project_fn: Callable | 
     new_pairs = {a: [] for a in range(3)}
     done: set[tuple[int, int]] = set()
     added = 0
+    tree = cKDTree(surface.points) if project_fn is not None else None
     for u, v in np.asarray(edges, dtype=np.int64).reshape(-1, 2):
         u, v = int(u), int(v)
         if (min(u, v), max(u, v)) in done:
@@ -233,9 +284,9 @@ def split_edges(surface: SurfaceMesh, edges: np.ndarray, project_fn: Callable | 
         for a, s in common:
             m[a] = s * box[a]
         if k_inc > 0 and project_fn is not None:
-            locked = np.zeros((1, 3), dtype=bool)
-            locked[0, [a for a, _ in common]] = True
-            m = np.asarray(project_fn(m[None], np.array([k_inc]), locked), dtype=float)[0]
+            m = _interface_split_point(project_fn, pu, pv, k_inc, common, box, tree)
+            if m is None:  # left unsplit; the caller sees it in the count
+                continue
         # the edge and its periodic images: (u, v, new point) for every subset of the common axes
         images = [(u, v, m)]
         for a, s in common:

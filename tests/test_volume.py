@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.spatial import Delaunay
+from scipy.spatial import Delaunay, cKDTree
 
 from jaxmesh._errors import MeshingError
 from jaxmesh._mesh import Mesh, make_periodic_pairs
@@ -13,6 +13,7 @@ from jaxmesh._surface_mesh import BOX_FACE, INTERFACE, OUTSIDE, SurfaceMesh
 from jaxmesh._validate import validate
 from jaxmesh._volume import VolumeConfig, conforming_delaunay, interior_nodes, label_cells, tetrahedralize
 from jaxmesh._volume_recover import (
+    _interface_split_point,
     levelset_projector,
     missing_triangles,
     point_triangle_distance,
@@ -276,6 +277,67 @@ def test_split_edges_mirrors_box_edges_and_projects():
     # the refined surface still meshes conformingly and validates
     mesh = tetrahedralize(s2, h_fn=lambda p: np.full(len(p), 0.2), config=NOREL)
     assert validate(mesh, ms).ok
+
+
+def grazing_sphere(cap_angle: float):
+    """A level-3 icosphere of radius 0.3, tilted by cap_angle about x, whose lowest node is 3e-5 above
+    y = 0 while the sphere itself crosses y = 0: the surface does not see the cap beyond the plane.
+    Returns (SurfaceMesh, spheres, depth of the sphere below y = 0)."""
+    r, tilt = 0.3, np.array([[1, 0, 0], [0, np.cos(cap_angle), -np.sin(cap_angle)],
+                            [0, np.sin(cap_angle), np.cos(cap_angle)]])
+    unit, _ = icosphere(np.zeros(3), 1.0, 3)
+    c = np.array([0.5, 3e-5 - r * (unit @ tilt.T)[:, 1].min(), 0.5])
+    spheres = ((tuple(c), r, 3),)
+    s = rve_surface(spheres)
+    pts = s.points.copy()
+    on = s.node_inclusion == 1
+    pts[on] = c + (pts[on] - c) @ tilt.T  # a rotation: the nodes stay on the sphere, the orientation kept
+    s = SurfaceMesh(pts, s.triangles, s.sides, s.kind, s.node_inclusion, s.box, s.periodic_pairs)
+    return s, spheres, r - c[1]
+
+
+def test_recovery_keeps_a_sphere_grazing_a_box_plane_inside_the_box():
+    # cap beyond y = 0: 1.1e-4 deep, radius 0.008, a sixth of an edge. The projected midpoints of the
+    # bottom chords landed below y = 0, outside the hull, and recovery diverged (the 200-sphere RVE)
+    s, spheres, depth = grazing_sphere(0.3)
+    assert 0 < depth < 2e-4
+    ms = sphere_microstructure(spheres)
+    points, cells, s2, info = conforming_delaunay(s, interior_nodes(s, _h), NOREL, levelset_projector(ms.inclusion_phi))
+    assert info["surface_splits"] > 0 and not missing_triangles(s2.triangles, cells, len(points)).any()
+    assert np.all((s2.points >= 0) & (s2.points <= 1))
+    mesh = tetrahedralize(s, h_fn=_h, config=NOREL, project_fn=levelset_projector(ms.inclusion_phi))
+    report = validate(mesh, ms)
+    assert report.ok, report.summary()
+
+
+def test_recovery_stops_at_once_when_no_edge_splits_inside_the_box():
+    # a cap of radius 0.025 under a chord of 0.05: every projected chord point leaves the box
+    s, spheres, _ = grazing_sphere(0.7)
+    ms = sphere_microstructure(spheres)
+    with pytest.raises(MeshingError, match="can be split inside the box"):
+        conforming_delaunay(s, interior_nodes(s, _h), NOREL, levelset_projector(ms.inclusion_phi))
+
+
+def test_interface_split_point_stays_in_the_box_and_off_existing_nodes():
+    # a sphere cut by y = 0 keeps more than a hemisphere in the box: the radial projection of a long
+    # chord's midpoint next to its trace lands below y = 0
+    c, r = np.array([0.5, 0.3, 0.5]), 0.4
+    proj = levelset_projector(lambda k, p: np.linalg.norm(np.asarray(p) - c, axis=1) - r)
+
+    def on_sphere(y, theta):
+        cos = np.sqrt(1 - ((y - c[1]) / r) ** 2)
+        return c + r * np.array([cos * np.cos(theta), (y - c[1]) / r, cos * np.sin(theta)])
+
+    a, b, box = on_sphere(0.0, 0.0), on_sphere(0.01, 0.8), np.ones(3)
+    assert proj(0.5 * (a + b)[None], np.array([1]), np.zeros((1, 3), bool))[0, 1] < 0  # the plain projection
+    q = _interface_split_point(proj, a, b, 1, [], box, cKDTree(np.stack([a, b])))
+    assert abs(np.linalg.norm(q - c) - r) < 1e-12 and np.all((q > 0) & (q < 1))
+    # away from the planes the projected midpoint, unless a node is already there
+    a, b = on_sphere(0.5, 0.0), on_sphere(0.55, 0.3)
+    mid = proj(0.5 * (a + b)[None], np.array([1]), np.zeros((1, 3), bool))[0]
+    np.testing.assert_allclose(_interface_split_point(proj, a, b, 1, [], box, cKDTree(np.stack([a, b]))), mid)
+    q = _interface_split_point(proj, a, b, 1, [], box, cKDTree(np.stack([a, b, mid])))
+    assert np.linalg.norm(q - mid) > 0.1 * np.linalg.norm(b - a) and abs(np.linalg.norm(q - c) - r) < 1e-12
 
 
 def test_bad_inputs():
