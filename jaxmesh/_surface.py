@@ -328,7 +328,10 @@ def cut_by_box(points, tris, on_plane, phi_fn, box, h_fn, config: SurfaceConfig)
         for k in range(int(np.ceil(lo / L[a])), int(np.floor(hi / L[a])) + 1):
             value = k * L[a]
             h_loc = evaluate_size(h_fn, points)
-            tol = config.snap_fraction * float(np.min(h_loc))
+            # a cap shallower than the snap distance would be flattened onto the plane whole, leaving
+            # a trace on one side without its translate: snap within half the cap's depth at most
+            depth = min(points[:, a].max() - value, value - points[:, a].min())
+            tol = min(config.snap_fraction * float(np.min(h_loc)), 0.5 * depth)
             cand = snap_candidates(points, tris, on_plane, a, value, tol)
             if cand.size:
                 old = points[cand].copy()
@@ -377,6 +380,55 @@ def wrap_pieces(points, tris, on_plane, box):
     return p, inv.reshape(-1, 3).astype(np.int64), src
 
 
+_MIN_CAP_DEPTH = 0.01  # fraction of h: shallower caps beyond a box plane are not meshed
+
+
+def _walk(phi_fn, q, direction, step: float, newton_steps: int, done, max_steps: int = 40):
+    """Move points q (k, 3) along the level set: tangential part of `direction`, then Newton back
+    onto phi = 0, until done(q) (k,) holds or the tangential part vanishes (an extreme point)."""
+    for _ in range(max_steps):
+        live = ~done(q)
+        g = level_set_gradient(phi_fn, q)
+        n = g / np.linalg.norm(g, axis=1, keepdims=True)
+        move = step * (direction - (n @ direction)[:, None] * n) * live[:, None]
+        if np.linalg.norm(move, axis=1).max() < 1e-9 * step:
+            break
+        q, _, _ = project(phi_fn, q + move, np.zeros(q.shape, bool), newton_steps)
+    return q
+
+
+def settle_caps(points, phi_fn, h_fn, box, newton_steps: int):
+    """Make the nodes agree with the level set about which box planes it crosses.
+
+    A cap beyond a plane thinner than the node spacing may hold no node, so the surface would not
+    be cut there while the level set is (the volume recovery then projects split points out of the
+    box); or its only node makes a cap of slivers. Near each plane (the extreme node within h of
+    it) the extreme node walks along the level set to the extreme point: a cap deeper than
+    _MIN_CAP_DEPTH * h gets that node, so the cut sees it; a shallower one is left out of the mesh,
+    its nodes walking back inside by the cap's depth (meshing it would need elements that thin).
+    """
+    L = np.asarray(box, float)
+    points = points.copy()
+    for a in range(3):
+        for sign in (-1.0, 1.0):
+            i = int(np.argmax(sign * points[:, a]))
+            plane = np.round(points[i, a] / L[a]) * L[a]
+            h = float(evaluate_size(h_fn, points[i][None])[0])
+            if not -h < sign * (points[i, a] - plane) < h:
+                continue
+            up = np.zeros(3)
+            up[a] = sign
+            q = _walk(phi_fn, points[i][None], up, 0.25 * h, newton_steps, lambda q: np.zeros(len(q), bool))
+            depth = sign * (q[0, a] - plane)
+            if depth > _MIN_CAP_DEPTH * h:
+                points[i] = q[0]
+            elif depth > 0 and sign * (points[i, a] - plane) > -depth:
+                beyond = np.flatnonzero(sign * (points[:, a] - plane) > -depth)
+                points[beyond] = _walk(phi_fn, points[beyond], -up, 0.25 * h, newton_steps,
+                                       lambda q: sign * (q[:, a] - plane) <= -depth)
+    return points
+
+
 def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()):
     """Closed surface of one inclusion, improved, cut by the box and wrapped into it.
 
@@ -405,6 +457,7 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
     if (pts.min(0) < lower - 0.25 * L).any() or (pts.max(0) > upper + 0.25 * L).any():
         raise MeshingError("surfaces", "surface nodes left the inclusion's neighbourhood during relaxation "
                            "(a degenerate level set? check the input near this inclusion)", inclusion.id)
+    pts = settle_caps(pts, phi_fn, h_fn, box, config.newton_steps)
     crosses = (np.floor(pts.min(0) / L) != np.floor(pts.max(0) / L)).any()
     if crosses:
         for _ in range(3):

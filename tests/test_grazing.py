@@ -1,22 +1,51 @@
-"""An inclusion that crosses a box plane by much less than a grid step, end to end through mesh_rve.
+"""Inclusions that cross a box plane by a small fraction of a grid step (or miss it by one), end to
+end through mesh_rve.
 
-The surface stage meshes it as not crossing the plane, yet its level set does: the volume recovery
-once projected split points beyond the plane, outside the hull, and diverged (the 200-sphere RVE,
-inclusion 53, crossed y = 0 by 7e-5 with grid step 1/128).
+Caps that thin once broke three ways: the surface stage snapped the whole cap onto the plane (a
+trace on x = 0 without its translate on x = L); a cap with no node in it was meshed as not crossing
+the plane, so the volume recovery projected split points out of the box (the 200-sphere RVE,
+inclusion 53, crossed y = 0 by 7e-5 with grid step 1/128); a one-node cap made recovery run away.
 """
 
 import numpy as np
+import pytest
 
 from jaxmesh import InclusionSpec, MeshConfig, mesh_rve, microstructure_from_specs, validate
 
 
-def test_sphere_grazing_a_box_plane_meshes_and_validates():
-    n, r = 32, 0.2
-    depth = 0.005 / n  # the cap beyond y = 0: 1/200 of a grid step deep, radius 0.009 (h = 0.05)
-    spec = InclusionSpec("sphere", np.array([0.43, r - depth, 0.57]), np.full(3, r), np.eye(3))
+def _rotation(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@pytest.mark.parametrize(
+    "radius, h, steps",
+    [
+        (0.2, 0.05, 0.005),  # no node in the cap: left out, recovery keeps its points in the box
+        (0.25, 0.08, 0.01),  # one node in a cap 0.004 h deep: left out, its node walks back inside
+        (0.2, 0.05, 0.05),  # no node in a cap 0.03 h deep: the extreme node is moved into it
+        (0.15, 0.06, 0.1),  # a cap shallower than the snap distance: cut, not flattened
+        (0.2, 0.05, -0.05),  # misses the plane by 1/20 of a step
+    ],
+)
+def test_sphere_grazing_a_box_plane(radius, h, steps):
+    n = 32
+    depth = steps / n  # how far the sphere crosses y = 0, in grid steps
+    spec = InclusionSpec("sphere", np.array([0.43, radius - depth, 0.57]), np.full(3, radius), np.eye(3))
     ms = microstructure_from_specs([spec], (1.0, 1.0, 1.0), (n,) * 3)
-    mesh = mesh_rve(ms, MeshConfig(h=0.05, seed=0))
-    assert mesh.metadata["volume"]["surface_splits"] > 0  # the recovery had to split interface edges
+    mesh = mesh_rve(ms, MeshConfig(h=h, seed=0))
     assert np.all((mesh.points >= 0) & (mesh.points <= 1))
+    report = validate(mesh, ms)
+    assert report.ok, report.summary()
+
+
+def test_ellipsoid_grazing_two_planes_near_a_box_edge():
+    # a tilted ellipsoid crossing x = 0 and y = 0 by a tenth of a grid step each, near their edge
+    n, axes, rot = 32, np.array([0.2, 0.12, 0.12]), _rotation(0.5)
+    extent = np.sqrt(np.einsum("ij,j,ij->i", rot, axes**2, rot))  # half-widths along x, y, z
+    depth = 0.1 / n
+    centre = np.array([extent[0] - depth, extent[1] - depth, 0.5])
+    ms = microstructure_from_specs([InclusionSpec("ellipsoid", centre, axes, rot)], (1.0, 1.0, 1.0), (n,) * 3)
+    mesh = mesh_rve(ms, MeshConfig(h=0.05, seed=0))
     report = validate(mesh, ms)
     assert report.ok, report.summary()
