@@ -22,10 +22,8 @@ nor its narrowness setting, so the presets are chosen to land near those counts:
   coarse iis 0.05, nb_el 0.75; fine iis 0.03, nb_el 1 (one element across the narrowest gaps).
   nb_el 0.5 would come nearer 300k tets, but the surface stage failed on it (seed 0: a trace on
   x = 0 without its translate on x = L; seed 1: 3 intersecting triangle pairs), 2026-11-28.
-  Measured at commit cc69cdd: the coarse preset gave 774k tets for a predicted 360k (factor 2.15);
-  the fine preset's volume step did not finish (surface triangles left missing after 12 recovery
-  rounds), nor, at 879b6c9, the coarse one;
-  see benchmarks/README.md. `--estimate` prints the predicted count of a setting without meshing.
+  Measured at commit 84e11bd (after the generator's box clearance): coarse 791k tets for a
+  predicted 366k, fine 1.40M for a predicted 614k; see benchmarks/README.md. `--estimate` prints the predicted count of a setting without meshing.
 
 Prints per-stage times (size, surfaces, volume sub-stages: interior nodes, Delaunay + recovery,
 labels, relaxation, slivers; validation, quality report), node / tet counts, mean q, % q < 0.3,
