@@ -404,7 +404,8 @@ def settle_caps(points, phi_fn, h_fn, box, newton_steps: int):
     be cut there while the level set is (the volume recovery then projects split points out of the
     box); or its only node makes a cap of slivers. Near each plane (the extreme node within h of
     it) the extreme node walks along the level set to the extreme point: a cap deeper than
-    _MIN_CAP_DEPTH * h gets that node, so the cut sees it; a shallower one is left out of the mesh,
+    _MIN_CAP_DEPTH * h gets that node (if it moved less than h / 2, so that its triangles do not
+    fold), so the cut sees it; a shallower one is left out of the mesh,
     its nodes walking back inside by the cap's depth (meshing it would need elements that thin).
     """
     L = np.asarray(box, float)
@@ -420,7 +421,7 @@ def settle_caps(points, phi_fn, h_fn, box, newton_steps: int):
             up[a] = sign
             q = _walk(phi_fn, points[i][None], up, 0.25 * h, newton_steps, lambda q: np.zeros(len(q), bool))
             depth = sign * (q[0, a] - plane)
-            if depth > _MIN_CAP_DEPTH * h:
+            if depth > _MIN_CAP_DEPTH * h and np.linalg.norm(q[0] - points[i]) < 0.5 * h:  # no fold
                 points[i] = q[0]
             elif depth > 0 and sign * (points[i, a] - plane) > -depth:
                 beyond = np.flatnonzero(sign * (points[:, a] - plane) > -depth)
