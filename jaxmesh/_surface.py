@@ -421,9 +421,13 @@ def settle_caps(points, phi_fn, h_fn, box, newton_steps: int):
             up[a] = sign
             q = _walk(phi_fn, points[i][None], up, 0.25 * h, newton_steps, lambda q: np.zeros(len(q), bool))
             depth = sign * (q[0, a] - plane)
-            if depth > _MIN_CAP_DEPTH * h and np.linalg.norm(q[0] - points[i]) < 0.5 * h:  # no fold
+            others = np.delete(np.minimum(np.abs(q[0]), np.abs(L - q[0])), a)
+            empty = sign * (points[i, a] - plane) <= 0  # no node in the cap yet
+            # a short walk (no fold) that ends clear of the other planes (a node on a box edge is cut there)
+            if empty and depth > _MIN_CAP_DEPTH * h and np.linalg.norm(q[0] - points[i]) < 0.5 * h \
+                    and others.min() > _MIN_CAP_DEPTH * h:
                 points[i] = q[0]
-            elif depth > 0 and sign * (points[i, a] - plane) > -depth:
+            elif 0 < depth <= _MIN_CAP_DEPTH * h and sign * (points[i, a] - plane) > -depth:
                 beyond = np.flatnonzero(sign * (points[:, a] - plane) > -depth)
                 points[beyond] = _walk(phi_fn, points[beyond], -up, 0.25 * h, newton_steps,
                                        lambda q: sign * (q[:, a] - plane) <= -depth)

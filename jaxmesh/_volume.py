@@ -210,6 +210,9 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
         if rnd == config.max_recovery_rounds:
             break
         if not miss.any():  # flat interior tets only: re-jitter the interior nodes
+            if not len(interior):
+                raise MeshingError("volume", f"{dinfo['flat_interior']} flat tets between surface nodes and no "
+                                   "interior node to move (hint: a smaller h)")
             rng = np.random.default_rng(config.seed + 1000 + rnd)
             span = np.ptp(interior, axis=0).max(initial=1.0) / max(len(interior), 1) ** (1 / 3)
             interior = interior + 1e-3 * span * rng.uniform(-1, 1, interior.shape)
