@@ -70,7 +70,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     specs = gen.random_inclusions(
         box, n=args.n, volume_fraction=args.volume_fraction, shape=shape,
         radius=(args.radius, args.radius_std), aspect=(1.0, args.max_aspect),
-        min_gap=args.min_gap, seed=args.seed,
+        min_gap=args.min_gap, box_gap=args.box_gap, seed=args.seed,
     )
     gen.write_input(args.output, specs, box, grid_shape)
     volume = sum(_spec_volume(s) for s in specs)
@@ -215,6 +215,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--radius-std", type=float, default=0.02)
     g.add_argument("--max-aspect", type=float, default=2.0, help="largest aspect ratio for ellipsoids")
     g.add_argument("--min-gap", type=float, default=0.02, help="guaranteed minimum gap between inclusions")
+    g.add_argument("--box-gap", type=float, default=None,
+                   help="clearance of caps, traces and box-edge crossings from the box planes, edges and corners "
+                        "(default: --min-gap; 0 places inclusions anywhere)")
     g.add_argument("--correlation-length", type=float, default=0.1, help="grf only")
     g.add_argument("--grid", type=int, default=64, help="grid samples along the shortest box axis")
     g.add_argument("--box", type=float, nargs="+", default=None, help="box lengths (default: unit)")

@@ -67,3 +67,16 @@ def test_absurd_sizes_are_rejected(tmp_path, capsys):
     assert "larger than half" in capsys.readouterr().err
     assert main(["mesh", str(rve), "-o", str(tmp_path / "x.vtu"), "--iis", "1e-6"]) == 2
     assert "1/500" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("box_gap", [None, "0.08"])
+def test_generate_keeps_inclusions_clear_of_the_box(tmp_path, box_gap):
+    from jaxmesh._generate import _box_clearance, _shape_matrices
+
+    rve = tmp_path / "rve.npz"
+    extra = [] if box_gap is None else ["--box-gap", box_gap]
+    assert main(["generate", str(rve), "--dim", "3", "--kind", "ellipsoid", "--n", "12", "--radius", "0.12",
+                 "--min-gap", "0.03", "--grid", "16", "--seed", "4", *extra]) == 0
+    data = np.load(rve)
+    dist = _box_clearance(data["centers"], _shape_matrices(data["axes"], data["rotations"]), data["box"])[0]
+    assert dist.min() >= (0.03 if box_gap is None else 0.08) - 1e-9
