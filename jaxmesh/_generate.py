@@ -317,7 +317,8 @@ def _relax(box, axes, mats, x, gap, is_sphere, max_iter, box_gap=0.0):
     """Force-biased overlap removal: every pair closer than the gap (plus a small slack) is pushed
     apart along its separating direction, shared by volume (small ones move more), all pairs at
     once; an inclusion whose cap, trace or edge crossing ends within box_gap of a box plane moves
-    along that plane's axis, to the nearer side. Returns the wrapped centres (N, d), or None if pairs still overlap after max_iter."""
+    along that plane's axis, to the nearer side. Returns the wrapped centres (N, d), or None if
+    pairs still overlap after max_iter."""
     from scipy.spatial import cKDTree
 
     n, d = x.shape
@@ -520,8 +521,8 @@ def random_inclusions(
                 "random_inclusions",
                 f"jammed: RSA placed volume fraction {vols[pack.placed].sum() / box_volume:.4f} "
                 f"({int(pack.placed.sum())} inclusions); {len(deferred)} more (up to {fraction:.4f}) could not be "
-                f"separated by {min_gap} (box clearance {box_gap}) within {max_relax_iter} relaxation iterations. Hint: broaden the size "
-                "distribution, lower the fraction or the gap, or raise max_relax_iter.",
+                f"separated by {min_gap} (box clearance {box_gap}) within {max_relax_iter} relaxation iterations. "
+                "Hint: broaden the size distribution, lower the fraction or the gap, or raise max_relax_iter.",
             )
         pack = _Packing(box, axes, rots, float(min_gap), shape == "sphere", box_gap)
         for q, i in enumerate(used):
