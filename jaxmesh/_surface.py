@@ -258,6 +258,29 @@ def folded(points, tris, phi_fn) -> np.ndarray:
     return np.einsum("ij,ij->i", nrm, g) <= 0
 
 
+def unfold(points, tris, on_plane, phi_fn, newton_steps: int, rounds: int = 5) -> np.ndarray:
+    """Move the free nodes around folded triangles to their neighbours' mean, projected onto phi = 0,
+    until no fold is left (at most `rounds` times). A relaxation that leaves one fold is otherwise
+    dropped whole, and the marching-cubes needles it was fixing stay (seen: 1 deg triangles)."""
+    points = points.copy()
+    edges, _ = half_edges(tris, len(points))
+    degree = np.bincount(edges.ravel(), minlength=len(points))
+    for _ in range(rounds):
+        bad = folded(points, tris, phi_fn)
+        if not bad.any():
+            break
+        ring = np.unique(tris[np.isin(tris, tris[bad]).any(axis=1)])
+        ring = ring[~on_plane[ring].any(axis=1)]  # plane nodes stay on their traces
+        if not len(ring):
+            break
+        total = np.zeros_like(points)
+        np.add.at(total, edges[:, 0], points[edges[:, 1]])
+        np.add.at(total, edges[:, 1], points[edges[:, 0]])
+        mean = total[ring] / degree[ring, None]
+        points[ring], _, _ = project(phi_fn, mean, np.zeros((len(ring), 3), bool), newton_steps)
+    return points
+
+
 _KEEP_ANGLE = 25.0  # degrees: a relaxation may lower the smallest angle only down to this
 
 
@@ -265,8 +288,9 @@ def improve(points, tris, on_plane, phi_fn, h_fn, box, config: SurfaceConfig, cu
     """Rounds of edge collapses (edges < collapse_ratio * h, needles), 1-to-4 refinement (edges >
     refine_ratio * h), quality flips and truss relaxation.
 
-    A relaxation that folds a triangle, or takes the smallest angle below both its old value and
-    _KEEP_ANGLE, is retried with dt / 5 and otherwise dropped (back off, never delete triangles).
+    Folds a relaxation leaves are smoothed out (`unfold`); one that still folds a triangle, or takes
+    the smallest angle below both its old value and _KEEP_ANGLE, is retried with dt / 5 and
+    otherwise dropped (back off, never delete triangles).
     Returns (points, tris, on_plane).
     """
     truss = config.truss
@@ -291,6 +315,7 @@ def improve(points, tris, on_plane, phi_fn, h_fn, box, config: SurfaceConfig, cu
         for attempt in range(2):
             cfg = truss if attempt == 0 else dataclasses.replace(truss, dt=truss.dt * truss.dt_retry_factor)
             q, t, _ = _relax(points, tris, on_plane, phi_fn, h_fn, box, cfg, cut, config.newton_steps)
+            q = unfold(q, t, on_plane, phi_fn, config.newton_steps)
             if not folded(q, t, phi_fn).any() and min_angles(q, t).min() >= min(worst, _KEEP_ANGLE):
                 points, tris = q, t
                 break

@@ -8,7 +8,8 @@ import pytest
 
 from jaxmesh._intersect import intersecting_pairs
 from jaxmesh._quality import cell_quality, min_angles
-from jaxmesh._surface import SurfaceConfig, as_size_fn, enclosed_volume, extract, mesh_inclusion, project
+from jaxmesh._surface import (SurfaceConfig, as_size_fn, enclosed_volume, extract, folded, mesh_inclusion, project,
+                              unfold)
 from jaxmesh._surface_ops import collapse_edges, cut_plane, flip_edges, half_edges, refine, straddling
 from jaxmesh.geometry._microstructure import Microstructure
 from jaxmesh.geometry._shapes import sphere_sdf
@@ -53,6 +54,22 @@ def test_flips_raise_quality_and_keep_surface(sphere):
     assert n > 0 and _closed(t2)
     assert cell_quality(p, t2).min() >= cell_quality(p, t).min() - 1e-12
     assert np.sort(cell_quality(p, t2))[:20].mean() > np.sort(cell_quality(p, t))[:20].mean()
+
+
+def test_unfold_removes_a_fold_and_keeps_nodes_on_the_level_set(sphere):
+    phi, p, t = sphere
+    edges, _ = half_edges(t, len(p))
+    i, j = edges[0]
+    q = p.copy()
+    q[i] = project(phi, (2 * p[j] - p[i])[None], np.zeros((1, 3), bool))[0][0]  # node i jumps over node j
+    assert folded(q, t, phi).any()
+    on_plane = np.zeros(q.shape, bool)
+    on_plane[j] = True  # a node on a plane is never moved
+    r = unfold(q, t, on_plane, phi, 8)
+    assert not folded(r, t, phi).any()
+    assert np.abs(np.linalg.norm(r - 0.5, axis=1) - 0.2).max() < 1e-10
+    assert np.array_equal(r[j], q[j])
+    assert np.array_equal(unfold(p, t, on_plane, phi, 8), p)  # nothing folded: nothing moves
 
 
 def test_cut_plane_splits_without_straddling(sphere):
