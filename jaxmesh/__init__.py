@@ -1,5 +1,6 @@
 """jaxmesh: periodic, conforming, differentiable meshes of implicit microstructures."""
 
+from ._compile_cache import enable_compilation_cache as enable_compilation_cache
 from ._errors import MeshingError as MeshingError
 from ._generate import InclusionSpec as InclusionSpec
 from ._generate import excursion_set as excursion_set

@@ -11,6 +11,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from ._compile_cache import enable_compilation_cache
 from ._errors import MeshingError
 
 
@@ -261,6 +262,7 @@ def main(argv: list[str] | None = None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)  # interface nodes on the level set to 1e-12, not 1e-7
+    enable_compilation_cache()  # a second run skips ~10 s of compiling
     try:
         return int(args.func(args) or 0)
     except (ValueError, MeshingError, FileNotFoundError) as exc:

@@ -80,3 +80,31 @@ def test_generate_keeps_inclusions_clear_of_the_box(tmp_path, box_gap):
     data = np.load(rve)
     dist = _box_clearance(data["centers"], _shape_matrices(data["axes"], data["rotations"]), data["box"])[0]
     assert dist.min() >= (0.03 if box_gap is None else 0.08) - 1e-9
+
+
+def test_compilation_cache_folder_from_the_environment(monkeypatch, tmp_path):
+    from jaxmesh._compile_cache import CACHE_ENV, default_cache_dir
+
+    monkeypatch.setenv(CACHE_ENV, "")
+    assert default_cache_dir() is None
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "c"))
+    assert default_cache_dir() == tmp_path / "c"
+    monkeypatch.delenv(CACHE_ENV)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert default_cache_dir() == tmp_path / "jaxmesh" / "xla"
+
+
+def test_cli_keeps_compilations_for_the_next_run(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    cache = tmp_path / "xla"
+    env = dict(os.environ, JAXMESH_CACHE_DIR=str(cache))
+    rve = tmp_path / "rve.npz"
+    cli = [sys.executable, "-m", "jaxmesh._cli"]
+    for args in (["generate", str(rve), "--dim", "2", "--n", "2", "--radius", "0.15", "--grid", "64"],
+                 ["mesh", str(rve), "-o", str(tmp_path / "m.vtu"), "--h", "0.1"]):
+        run = subprocess.run(cli + args, env=env, capture_output=True, text=True, timeout=600)
+        assert run.returncode == 0, run.stderr
+    assert len(list(cache.iterdir())) > 5  # one entry per compiled kernel
