@@ -130,12 +130,13 @@ def _face_keys(cells: np.ndarray, n: int) -> np.ndarray:
 
 def optimise_mesh(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, rounds: int = 5,
                   threshold: float = 0.7, free: np.ndarray | None = None,
-                  min_gain: float = 1e-3) -> tuple[np.ndarray, np.ndarray, dict]:
+                  min_gain: float = 1e-3, local: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
     """Rounds of flips (`improve_topology`) then smoothing of the interior nodes (`smooth_vertices`),
     until a round raises the mean quality by less than min_gain.
 
     Flips first: the conforming Delaunay's slivers are mostly fixed by edge removals, and smoothing
-    then works on a better topology. Surface triangles and surface nodes never change.
+    then works on a better topology. Surface triangles and surface nodes never change. With `local`
+    the flips too stay at tets with a `free` vertex (the clean-up around Steiner points).
     """
     if free is None:
         free = np.arange(len(points)) >= surface.n_points
@@ -143,7 +144,7 @@ def optimise_mesh(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, r
     info = {"opt_flips": 0, "opt_moves": 0, "opt_rounds": 0}
     mean = cell_quality(points, cells).mean()
     for rnd in range(rounds):
-        cells, flipped = improve_topology(points, cells, protected, threshold, passes=2)
+        cells, flipped = improve_topology(points, cells, protected, threshold, passes=2, near=free if local else None)
         points, moved = smooth_vertices(points, cells, free, sweeps=2, seed=rnd)
         info["opt_flips"] += flipped
         info["opt_moves"] += moved
@@ -170,7 +171,7 @@ def remove_slivers(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh,
             "opt_moves": 0, "opt_rounds": 0}
     free = np.arange(len(points)) >= surface.n_points
     for rnd in range(config.sliver_passes + 1):
-        points, cells, oinfo = optimise_mesh(points, cells, surface, free=free)
+        points, cells, oinfo = optimise_mesh(points, cells, surface, free=free, local=rnd > 0)
         for k, v in oinfo.items():
             info[k] += v
         bad = np.flatnonzero(min_dihedral(points, cells) < angle)
