@@ -57,7 +57,11 @@ def _six_volumes(p: np.ndarray) -> np.ndarray:
 def tet_quality(p: np.ndarray) -> np.ndarray:
     """Signed radius ratio 3 r_in / r_circ of tets p (m, 4, 3): negative when inverted, 0 when flat."""
     # coordinate-major (4, 3, m): every product below is on contiguous rows, no stacking (1.5x faster)
-    x = np.ascontiguousarray(np.moveaxis(np.asarray(p, dtype=float), 0, -1))
+    return _quality_cm(np.ascontiguousarray(np.moveaxis(np.asarray(p, dtype=float), 0, -1)))
+
+
+def _quality_cm(x: np.ndarray) -> np.ndarray:
+    """`tet_quality` of coordinate-major tets x (4, 3, m)."""
     a, b, c = x[1] - x[0], x[2] - x[0], x[3] - x[0]
     bc, ca, ab = _cross_rows(b, c), _cross_rows(c, a), _cross_rows(a, b)
     six_v = _dot_rows(a, bc)
@@ -156,14 +160,14 @@ def smooth_vertices(points: np.ndarray, cells: np.ndarray, free: np.ndarray, swe
     return points, moves
 
 
-def _star_eval(p0, rows_idx, owner, local, x, k):
-    """Minimum and mean signed quality of each of k stars (tets p0 (r, 4, 3)) with its vertex at x (k, 3)."""
+def _star_eval(p0, rows_idx, owner, starts, local, x, k):
+    """Minimum and mean signed quality of each of k stars with its vertex at x (k, 3). p0 (4, 3, r):
+    the star tets, coordinate-major; owner (r,) sorted, each star's rows beginning at starts (k,)."""
     p = p0.copy()
-    p[rows_idx, local] = x[owner]
-    q = tet_quality(p)
-    qmin = np.full(k, np.inf)
-    np.minimum.at(qmin, owner, q)
-    qmean = np.bincount(owner, q, minlength=k) / np.maximum(np.bincount(owner, minlength=k), 1)
+    p[local, :, rows_idx] = x[owner]
+    q = _quality_cm(p)
+    qmin = np.minimum.reduceat(q, starts)  # ufunc.at is ~10x slower
+    qmean = np.add.reduceat(q, starts) / np.diff(np.append(starts, len(q)))
     return qmin, qmean, q
 
 
@@ -180,7 +184,9 @@ def _smooth_class(points, cells, by, off, edges, deg, verts) -> int:
     local = np.argmax(cells[rows] == verts[owner][:, None], axis=1)
     x0 = points[verts].copy()
     p0, rows_idx = points[cells[rows]], np.arange(len(rows))
-    best_min, best_mean, q = _star_eval(p0, rows_idx, owner, local, x0, k)
+    p0_cm = np.ascontiguousarray(np.moveaxis(p0, 0, -1))
+    starts = np.flatnonzero(np.diff(owner, prepend=-1))
+    best_min, best_mean, q = _star_eval(p0_cm, rows_idx, owner, starts, local, x0, k)
     base_mean = best_mean
     best_x = x0.copy()
     # worst tet of each star, and a length scale (mean edge length from the vertex)
@@ -225,12 +231,12 @@ def _smooth_class(points, cells, by, off, edges, deg, verts) -> int:
     for j in range(3):
         x = x0.copy()
         x[:, j] += eps
-        gm[:, j] = _star_eval(p0, rows_idx, owner, local, x, k)[1] - base_mean
+        gm[:, j] = _star_eval(p0_cm, rows_idx, owner, starts, local, x, k)[1] - base_mean
     gm /= np.maximum(np.linalg.norm(gm, axis=1), 1e-300)[:, None]
     for step in MEAN_STEPS:
         cands.append(x0 + step * scale[:, None] * gm)
     for x in cands:
-        qmin, qmean, _ = _star_eval(p0, rows_idx, owner, local, x, k)
+        qmin, qmean, _ = _star_eval(p0_cm, rows_idx, owner, starts, local, x, k)
         better = (qmin > 0) & (np.minimum(qmin, TAU) >= np.minimum(best_min, TAU)) & (
             W * np.minimum(qmin, TAU) + qmean > W * np.minimum(best_min, TAU) + best_mean + 1e-9)
         best_min = np.where(better, qmin, best_min)
