@@ -19,11 +19,11 @@ nor its narrowness setting, so the presets are chosen to land near those counts:
   everywhere, so iis alone barely changes the mesh: on 180 spheres of radius N(0.081, 0.015) the
   predicted count (c * integral of h^-3, `SizeField.element_count`) was the same for iis 0.05
   and 0.03 at nb_el 3 (4.7M) and at nb_el 1 (0.59M). The presets therefore also set nb_el:
-  coarse iis 0.05, nb_el 0.75; fine iis 0.03, nb_el 1 (one element across the narrowest gaps).
-  nb_el 0.5 would come nearer 300k tets, but the surface stage failed on it (seed 0: a trace on
-  x = 0 without its translate on x = L; seed 1: 3 intersecting triangle pairs), 2026-11-28.
-  Measured at commit 84e11bd (after the generator's box clearance): coarse 791k tets for a
-  predicted 366k, fine 1.40M for a predicted 614k; see benchmarks/README.md. `--estimate` prints the predicted count of a setting without meshing.
+  coarse iis 0.05, nb_el 0.5 (half an element across the narrowest gaps); fine iis 0.03, nb_el 1.
+  Measured on 2026-11-28 (benchmarks/README.md): coarse 321k tets at commit 94a7df0 (nb_el 0.5; it
+  failed in the surfaces before the thin-cap and fold fixes), where nb_el 0.75 gave 791k and a mean
+  q of 0.838 instead of 0.822; fine 1.40M. `--estimate` prints the predicted count of a setting
+  without meshing.
 
 Prints per-stage times (size, surfaces, volume sub-stages: interior nodes, Delaunay + recovery,
 labels, relaxation, slivers; validation, quality report), node / tet counts, mean q, % q < 0.3,
@@ -46,7 +46,7 @@ import time
 import numpy as np
 
 PRESETS = {  # Table 1 rows: mesh settings (the geometry is the same, see the docstring)
-    "coarse": {"iis": 0.05, "nb_el": 0.75},
+    "coarse": {"iis": 0.05, "nb_el": 0.5},
     "fine": {"iis": 0.03, "nb_el": 1.0},
 }
 
