@@ -131,7 +131,8 @@ def run(args) -> None:
 
         enable_compilation_cache(args.compilation_cache)
 
-    from jaxmesh import MeshConfig, load_input, microstructure_from_specs, quality_report, random_inclusions
+    from jaxmesh import (MeshConfig, cell_quality, load_input, microstructure_from_specs, quality_report,
+                         random_inclusions)
     from jaxmesh._faces import mesh_surfaces
     from jaxmesh._sizing import SizeParams, predicted_element_count, size_function
     from jaxmesh._validate import validate
@@ -185,8 +186,8 @@ def run(args) -> None:
                  + (", cached from an earlier run" if cached else ""), f"{t_surf:.2f}", peak_rss_gb()))
 
     t = time.perf_counter()
-    mesh = tetrahedralize(surface, None, h_fn=h_np, project_fn=levelset_projector(ms.inclusion_phi),
-                          label_fn=ms.label, phi_fn=ms.phi)
+    mesh, kept_surface = tetrahedralize(surface, None, h_fn=h_np, project_fn=levelset_projector(ms.inclusion_phi),
+                                        label_fn=ms.label, phi_fn=ms.phi, return_surface=True)
     t_vol = time.perf_counter() - t
     vol_peak = peak_rss_gb()
     times = mesh.metadata["times"]
@@ -225,6 +226,12 @@ def run(args) -> None:
     print(f"nodes {mesh.n_points:,}, tets {mesh.n_cells:,}; mean q {q['q_mean']:.3f}, min q {q['q_min']:.3f}, "
           f"tets with q < 0.3: {100 * q['frac_below']:.3f} %, min dihedral {q['min_dihedral_deg']:.2f} deg; "
           f"valid {report.ok}" + ("" if report.ok else f" (failed: {', '.join(report.failed)})"))
+    # where the quality deficit sits: tets by their number of surface nodes (fixed: smoothing cannot move them)
+    cell_q = cell_quality(mesh.points, mesh.cells)
+    on_surface = (mesh.cells < kept_surface.n_points).sum(axis=1)
+    print("mean q by surface nodes per tet: " + ", ".join(
+        f"{k}: {np.mean(on_surface == k):.1%} of tets, q {cell_q[on_surface == k].mean():.3f}"
+        for k in range(5) if np.any(on_surface == k)))
     print("volume: " + ", ".join(f"{k} {vinfo[k]}" for k in ("missing_first", "rounds", "interior_removed",
                                                                "surface_splits", "slivers_before", "slivers_after",
                                                                "inserted", "opt_flips", "opt_moves") if k in vinfo))
