@@ -7,7 +7,9 @@ face-normal axis locked. Measured, after a warm-up call and with block_until_rea
   - scan step: one full constrained Euler step inside lax.scan (target lengths from h_fn, forces,
     periodic averaging, constraint filter, re-imposed translations), per step over a 20-step scan;
   - scan step + surface: the same with 10% of the nodes on a level set (reaction, normal filter,
-    two Newton projections).
+    two Newton projections);
+  - grad of scan + surface: jax.grad of a scalar of the final points w.r.t. the level set's radius,
+    reverse mode through the whole scan.
 in float32 and float64. Runs in about a minute on 2 cores.
 
 Usage:  .venv/bin/python benchmarks/bench_truss.py [--n 47] [--steps 20] [--repeat 3]
@@ -108,6 +110,15 @@ def main():
         scan = jax.jit(lambda q, b, m, c: relax_fixed_topology(q, b, m, h_fn, c, args.steps, config=cfg))
         scan_s = jax.jit(lambda q, b, m, c: relax_fixed_topology(q, b, m, h_fn, c, args.steps, config=cfg,
                                                                  surface_phi_fn=phi_fn))  # fmt: skip
+        def phi_r(x, radius):
+            return jnp.sqrt(jnp.sum((x - 0.5) ** 2, axis=1)) - radius
+
+        def loss(radius, q, b, m, c):  # reverse mode through the whole scan, w.r.t. the level set's radius
+            out = relax_fixed_topology(q, b, m, h_fn, c, args.steps, config=cfg, surface_phi_fn=phi_r,
+                                       phi_params=radius)
+            return jnp.mean(jnp.sum((out - 0.5) ** 2, axis=1))
+
+        grad_s = jax.jit(jax.grad(loss))
         name = jnp.dtype(dtype).name
         t, c = timed(forces, p, bars, mask, l0, repeat=args.repeat)
         print(f"{'force kernel':<24}{name:<9}{t * 1e3:>10.1f}{t * 1e3:>10.1f}{c:>11.2f}")
@@ -117,6 +128,11 @@ def main():
             assert out.dtype == dtype, out.dtype
             assert bool(jnp.all(jnp.isfinite(out)))
             print(f"{label:<24}{name:<9}{t * 1e3:>10.1f}{t * 1e3 / args.steps:>10.1f}{c:>11.2f}")
+        radius = jnp.asarray(0.3, dtype)
+        t, c = timed(grad_s, radius, p, bars, mask, cons_s, repeat=args.repeat)
+        g = grad_s(radius, p, bars, mask, cons_s)
+        assert bool(jnp.isfinite(g)), g
+        print(f"{'grad of scan + surface':<24}{name:<9}{t * 1e3:>10.1f}{t * 1e3 / args.steps:>10.1f}{c:>11.2f}")
 
 if __name__ == "__main__":
     main()
