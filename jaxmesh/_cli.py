@@ -135,7 +135,8 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
     from ._quality import quality_report
 
     t0 = time.perf_counter()
-    config = MeshConfig(h=args.h, periodic=not args.no_periodic, seed=args.seed, **_size_kwargs(args))
+    config = MeshConfig(h=args.h, periodic=not args.no_periodic, seed=args.seed, backend=args.backend,
+                        **_size_kwargs(args))
     mesh = mesh_rve(args.input, config, box=_box_arg(args.box), progress=lambda line: print(line, flush=True))
     validation = mesh.metadata["validation"]
     for name, check in validation["checks"].items():
@@ -158,6 +159,10 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
 
         plot_mesh(mesh, args.plot, title=f"{Path(args.input).name}: {mesh.n_cells} cells")
         _progress("plot", f"-> {args.plot}", t0)
+    failed = [name for name, check in validation["checks"].items() if not check["passed"]]
+    if args.backend == "tetwild" and failed == ["interface"]:
+        print("    (tetwild: interface nodes are only near the level set; the mesh is not conforming)")
+        return 0
     return 0 if validation["ok"] else 1
 
 
@@ -242,6 +247,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--grad", type=float, default=None, help="gradient limit of the size function")
     m.add_argument("--h-max", type=float, default=None)
     m.add_argument("--no-periodic", action="store_true")
+    m.add_argument("--backend", choices=("conforming", "tetwild"), default="conforming",
+                   help="3D volume mesher: conforming (default: exact surfaces, periodic) or tetwild (fTetWild: "
+                        "robust to damaged surfaces, not conforming, not periodic; edge length --h or --iis)")
     m.add_argument("--seed", type=int, default=0)
     m.add_argument("--report", default=None, help="JSON report path")
     m.add_argument("--plot", default=None, help="PNG path: mesh coloured by phase + quality histogram")
@@ -267,6 +275,10 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except (ValueError, MeshingError, FileNotFoundError) as exc:
         print(f"jaxmesh {args.command}: error: {exc}", file=sys.stderr)
+        if isinstance(exc, MeshingError) and getattr(args, "backend", None) == "conforming" and \
+                exc.stage in ("surfaces", "volume"):
+            print("jaxmesh mesh: hint: --backend tetwild gives a valid but non-conforming, non-periodic mesh "
+                  "of such inputs", file=sys.stderr)
         return 2
 
 

@@ -33,6 +33,10 @@ class MeshConfig:
         validate: run the validator at the end and store its report in the metadata.
         interior: interior nodes of the volume stage: "bcc" (graded body-centred cubic lattices on h,
             the better quality measured so far, see benchmarks/README.md) or "octree" (paper 4.3).
+        backend: 3D volume mesher. "conforming" (default): keeps every surface triangle, periodic.
+            "tetwild": fTetWild (pytetwild) on the marching-cubes surface of the grid at edge length
+            h (or iis), robust to damaged surfaces but NOT conforming (interface nodes only near the
+            level set), NOT periodic (no node pairs) and labelled by the field at the centroids.
     """
 
     iis: float = 0.05
@@ -45,6 +49,7 @@ class MeshConfig:
     seed: int = 0
     validate: bool = True
     interior: str = "bcc"
+    backend: str = "conforming"
 
     def __post_init__(self):
         for name in ("iis", "nb_el", "curv_alpha", "grad", "h_max", "h"):
@@ -56,6 +61,8 @@ class MeshConfig:
                     f"MeshConfig.{name}: expected a positive finite number, got {value!r}; "
                     "hint: sizes are in box units, e.g. iis=0.05 for a unit box"
                 )
+        if self.backend not in ("conforming", "tetwild"):
+            raise ValueError(f"MeshConfig.backend: expected 'conforming' or 'tetwild', got {self.backend!r}")
         if self.interior not in ("bcc", "octree"):
             raise ValueError(f"MeshConfig.interior: expected 'bcc' or 'octree', got {self.interior!r}")
         if self.h_max is not None and self.h_max < self.iis:
@@ -134,6 +141,8 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
     _check_sizes_against_box(config, ms.box)
     t = stage("input", t, f"{ms.dim}D, {len(ms.inclusions)} inclusions, grid {tuple(ms.grid_shape)}")
 
+    if ms.dim == 2 and config.backend != "conforming":
+        raise ValueError(f"backend {config.backend!r} meshes 3D inputs only; hint: 2D inputs use the default backend")
     if ms.dim == 2:
         from ._mesh2d import mesh_2d
 
@@ -142,6 +151,11 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
         else:
             mesh = mesh_2d(ms, seed=config.seed, **config.size_kwargs())
         t = stage("mesh2d", t, f"{mesh.n_points} points, {mesh.n_cells} triangles")
+    elif config.backend == "tetwild":
+        from ._tetwild import tetwild_mesh
+
+        mesh = tetwild_mesh(ms, config.h if config.h is not None else config.iis)
+        t = stage("tetwild", t, f"{mesh.n_points} points, {mesh.n_cells} tetrahedra (not conforming, not periodic)")
     else:
         mesh, t = _mesh_3d(ms, config, stage, t)
 

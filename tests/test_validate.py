@@ -262,7 +262,16 @@ def test_non_periodic_mesh_skips_periodic_and_does_not_glue():
     m, ms = _labelled(2)
     rep = validate(_remesh(m, periodic=False, periodic_pairs=None), ms)
     assert rep.checks["periodic"].skipped and rep.checks["periodic"].passed
-    # Without the torus the corner inclusion is four pieces.
+    # Without the torus the corner inclusion is four pieces, each on the box: that is what the box does.
+    assert "connectivity" not in _failed(rep)
+    # A piece away from the box is still a split inclusion.
+    corner = int(np.bincount(m.inclusion_id[m.inclusion_id > 0]).argmax())
+    centroids = m.points[m.cells].mean(axis=1)
+    off_box = ((m.points[m.cells] > 0) & (m.points[m.cells] < 1)).all(axis=(1, 2))
+    inner = np.flatnonzero((m.inclusion_id == 0) & off_box & (np.abs(centroids - 0.5) < 0.4).all(axis=1))
+    ids = m.inclusion_id.copy()
+    ids[inner[0]] = corner
+    rep = validate(_remesh(m, ids=ids, periodic=False, periodic_pairs=None))
     assert "connectivity" in _failed(rep)
 
 

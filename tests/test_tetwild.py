@@ -1,0 +1,59 @@
+"""The optional fTetWild backend: a valid, non-periodic, approximately conforming mesh of the box."""
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxmesh import MeshConfig, Microstructure, mesh_rve, sphere_sdf, validate
+from jaxmesh._cli import main
+from jaxmesh._tetwild import levelset_surface, tetwild_mesh
+
+
+@pytest.fixture(scope="module")
+def cut_sphere():
+    """A sphere of radius 0.3 crossing the face x = 0 (centre x = 0.1)."""
+    return Microstructure.from_functions([sphere_sdf(jnp.array([0.1, 0.5, 0.5]), 0.3)], (1.0, 1.0, 1.0), (32,) * 3)
+
+
+def test_levelset_surface_reaches_the_box_and_points_outwards(cut_sphere):
+    v, f = levelset_surface(np.asarray(cut_sphere.dn1), cut_sphere.box)
+    assert v.min() >= 0 and v.max() <= 1 and np.isclose(v[:, 0].min(), 0) and np.isclose(v[:, 0].max(), 1)
+    p = v[f]
+    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    centre = np.array([0.1, 0.5, 0.5])
+    away = p.mean(axis=1) - centre
+    away[:, 0] -= np.round(away[:, 0])  # the periodic copy across x = 0
+    assert np.mean(np.einsum("ij,ij->i", normal, away) > 0) > 0.99
+    empty = levelset_surface(np.ones((8, 8, 8)), (1, 1, 1))
+    assert empty[0].shape == (0, 3) and empty[1].shape == (0, 3)
+
+
+def test_tetwild_mesh_is_valid_but_neither_periodic_nor_conforming(cut_sphere):
+    mesh = tetwild_mesh(cut_sphere, 0.08)
+    assert not mesh.periodic and mesh.metadata["backend"] == "tetwild"
+    report = validate(mesh, cut_sphere)
+    assert report.failed == ["interface"], report.summary()  # orientation, volume, boundary, labels, pieces pass
+    p = mesh.points[mesh.cells]
+    vol = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6
+    inside = vol[mesh.inclusion_id == 1].sum()
+    assert inside == pytest.approx(4 / 3 * np.pi * 0.3**3, rel=0.05)  # both pieces, across x = 0
+
+
+def test_cli_backend_tetwild(tmp_path, cut_sphere):
+    phi = tmp_path / "phi.npy"
+    np.save(phi, np.asarray(cut_sphere.dn1))
+    out, report = tmp_path / "m.vtu", tmp_path / "r.json"
+    assert main(["mesh", str(phi), "-o", str(out), "--backend", "tetwild", "--h", "0.1", "--report", str(report)]) == 0
+    data = json.loads(report.read_text())
+    assert data["metadata"]["backend"] == "tetwild" and data["quality"]["n_cells"] > 1000
+    assert out.stat().st_size > 0
+
+
+def test_backend_is_validated():
+    with pytest.raises(ValueError, match="backend"):
+        MeshConfig(backend="tetgen")
+    ms2 = Microstructure.from_functions([sphere_sdf(jnp.array([0.5, 0.5]), 0.2)], (1.0, 1.0), (32, 32))
+    with pytest.raises(ValueError, match="3D inputs only"):
+        mesh_rve(ms2, MeshConfig(backend="tetwild"))
