@@ -189,6 +189,7 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
     interior = np.asarray(interior, dtype=float).reshape(-1, 3)
     info = {"rounds": 0, "missing_first": 0, "interior_removed": 0, "surface_splits": 0, "flat_dropped": 0,
             "flat_interior": 0}
+    history: list[int] = []  # missing triangles per round
     for rnd in range(config.max_recovery_rounds + 1):
         surface, face_flips = delaunay_box_faces(surface)  # box faces lie on the hull: they must be 2D Delaunay
         surface, interface_flips = delaunay_interfaces(surface)
@@ -202,8 +203,14 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
                                "surface holds duplicate nodes or interior nodes coincide with it")
         miss = missing_triangles(surface.triangles, cells, len(points))
         info["rounds"] = rnd
+        history.append(int(miss.sum()))
         if rnd == 0:
             info["missing_first"] = int(miss.sum())
+        if len(history) >= 6 and history[-1] > history[-2] > history[-3] > history[-4] > history[-5]:
+            raise MeshingError("volume", f"surface recovery diverges (missing triangles per round: {history}); "
+                               "seen where an inclusion's cut by a box plane passes within h/2 of a box edge; hint: "
+                               "move it off the edge or across it, or refine h there",
+                               inclusion=_missing_inclusion(surface, miss))
         if not miss.any() and not dinfo["flat_interior"]:
             info["flat_interior"] = 0
             return points, cells, surface, info
