@@ -159,9 +159,11 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
 
         plot_mesh(mesh, args.plot, title=f"{Path(args.input).name}: {mesh.n_cells} cells")
         _progress("plot", f"-> {args.plot}", t0)
-    failed = [name for name, check in validation["checks"].items() if not check["passed"]]
-    if args.backend == "tetwild" and failed == ["interface"]:
-        print("    (tetwild: interface nodes are only near the level set; the mesh is not conforming)")
+    failed = {name for name, check in validation["checks"].items() if not check["passed"]}
+    near_box = validation["checks"]["volume"]["counts"].get("rel_error", 1.0) <= 1e-4
+    if args.backend == "tetwild" and failed <= {"interface", "boundary", "volume"} and near_box:
+        print("    (tetwild: not conforming; interface nodes lie near the level set, and a few box nodes may stay "
+              "inside fTetWild's envelope, off their plane)")
         return 0
     return 0 if validation["ok"] else 1
 

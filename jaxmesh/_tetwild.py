@@ -3,8 +3,9 @@
 `MeshConfig(backend="tetwild")`, `jaxmesh mesh --backend tetwild`. What it is good at: a valid tet
 mesh of the box from a surface that may be damaged or self-intersecting, where the conforming path
 stops with an error. What it is not: exactly conforming (fTetWild keeps the input surface only
-within an envelope, and simplifies it), periodic (no node pairs, opposite faces do not match) or
-labelled by the surfaces (each tet takes the field's label at its centroid).
+within an envelope, and simplifies it; a few box nodes may stay off their plane, inside it),
+periodic (no node pairs, opposite faces do not match) or labelled by the surfaces (each tet takes
+the field's label at its centroid). fTetWild runs on all cores and its result varies run to run.
 """
 
 from __future__ import annotations
@@ -58,13 +59,28 @@ def tetwild_mesh(microstructure, h: float, *, epsilon: float = 1e-3) -> Mesh:
     six_v = _six_volumes(verts, tets)
     tets[six_v < 0] = tets[six_v < 0][:, [1, 0, 2, 3]]
     snapped = _snap_to_box(verts, tets, box, 2.0 * epsilon * float(np.linalg.norm(box)))
+    on_one_plane = np.zeros(len(tets), bool)
+    for a in range(3):
+        for value in (0.0, box[a]):
+            on_one_plane |= (snapped[tets, a] == value).all(axis=1)
+    tets = tets[~on_one_plane]  # slivers inside fTetWild's envelope: flat once their nodes are on the plane
+    undone = np.zeros(len(verts), bool)
     for _ in range(10):  # undo the snaps that would flatten or invert a tet
         bad = _six_volumes(snapped, tets) <= 0
         if not bad.any():
             break
         nodes = np.unique(tets[bad])
         snapped[nodes] = verts[nodes]
-    verts = snapped if (_six_volumes(snapped, tets) > 0).all() else verts
+        undone[nodes] = True
+    if (_six_volumes(snapped, tets) > 0).all():
+        target = _snap_to_box(verts, tets, box, 2.0 * epsilon * float(np.linalg.norm(box)))
+        for i in np.flatnonzero(undone & (target != verts).any(axis=1)):  # one at a time: most fit alone
+            star = tets[(tets == i).any(axis=1)]
+            p = snapped[star]
+            p[star == i] = target[i]
+            if (np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) > 0).all():
+                snapped[i] = target[i]
+        verts = snapped
     used = np.unique(tets)
     remap = np.full(len(verts), -1)
     remap[used] = np.arange(len(used))
