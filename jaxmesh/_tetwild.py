@@ -56,31 +56,9 @@ def tetwild_mesh(microstructure, h: float, *, epsilon: float = 1e-3) -> Mesh:
     verts, tets = np.asarray(verts, dtype=np.float64), np.asarray(tets, dtype=np.int64)
     if not len(tets):
         raise MeshingError("volume", "fTetWild returned no tetrahedra (hint: a smaller h)")
-    six_v = _six_volumes(verts, tets)
+    six_v = _six(verts[tets])
     tets[six_v < 0] = tets[six_v < 0][:, [1, 0, 2, 3]]
-    snapped = _snap_to_box(verts, tets, box, 2.0 * epsilon * float(np.linalg.norm(box)))
-    on_one_plane = np.zeros(len(tets), bool)
-    for a in range(3):
-        for value in (0.0, box[a]):
-            on_one_plane |= (snapped[tets, a] == value).all(axis=1)
-    tets = tets[~on_one_plane]  # slivers inside fTetWild's envelope: flat once their nodes are on the plane
-    undone = np.zeros(len(verts), bool)
-    for _ in range(10):  # undo the snaps that would flatten or invert a tet
-        bad = _six_volumes(snapped, tets) <= 0
-        if not bad.any():
-            break
-        nodes = np.unique(tets[bad])
-        snapped[nodes] = verts[nodes]
-        undone[nodes] = True
-    if (_six_volumes(snapped, tets) > 0).all():
-        target = _snap_to_box(verts, tets, box, 2.0 * epsilon * float(np.linalg.norm(box)))
-        for i in np.flatnonzero(undone & (target != verts).any(axis=1)):  # one at a time: most fit alone
-            star = tets[(tets == i).any(axis=1)]
-            p = snapped[star]
-            p[star == i] = target[i]
-            if (np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) > 0).all():
-                snapped[i] = target[i]
-        verts = snapped
+    verts, tets = _settle_on_box(verts, tets, box, 2.0 * epsilon * float(np.linalg.norm(box)))
     used = np.unique(tets)
     remap = np.full(len(verts), -1)
     remap[used] = np.arange(len(used))
@@ -91,9 +69,50 @@ def tetwild_mesh(microstructure, h: float, *, epsilon: float = 1e-3) -> Mesh:
     return Mesh(points=verts, cells=tets, inclusion_id=ids, box=tuple(box), periodic=False, metadata=meta)
 
 
-def _six_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    p = points[tets]
+def _six(p: np.ndarray) -> np.ndarray:
+    """Six times the signed volumes of tets p (m, 4, 3)."""
     return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
+
+
+def _solid(p: np.ndarray) -> np.ndarray:
+    """(m,) bool: tets p (m, 4, 3) positive and not flat (6V above 6e-9 of the longest edge cubed)."""
+    longest = np.linalg.norm(p[:, [0, 0, 0, 1, 1, 2]] - p[:, [1, 2, 3, 2, 3, 3]], axis=2).max(axis=1)
+    return _six(p) > 6e-9 * longest**3
+
+
+def _settle_on_box(verts: np.ndarray, tets: np.ndarray, box: np.ndarray, reach: float):
+    """Box nodes onto their planes (`_snap_to_box`), keeping every tet positive: tets left flat on one
+    plane (slivers inside fTetWild's envelope) are dropped; snaps that would flatten or invert another
+    tet are undone, then retried one node at a time. Returns (points, tets)."""
+    target = _snap_to_box(verts, tets, box, reach)
+    snapped, undone = target.copy(), np.zeros(len(verts), bool)
+    for _ in range(20):
+        kept = tets[~_flat_on_a_plane(snapped[tets], box)]
+        bad = ~_solid(snapped[kept])
+        if not bad.any():
+            break
+        nodes = np.unique(kept[bad])
+        snapped[nodes] = verts[nodes]
+        undone[nodes] = True
+    else:
+        return verts, tets  # as fTetWild left them
+    for i in np.flatnonzero(undone & (target != verts).any(axis=1)):  # one at a time: most fit alone
+        star = tets[(tets == i).any(axis=1)]
+        local = snapped[star]
+        local[star == i] = target[i]
+        if _solid(local[~_flat_on_a_plane(local, box)]).all():
+            snapped[i] = target[i]
+    kept = tets[~_flat_on_a_plane(snapped[tets], box)]
+    return (snapped, kept) if _solid(snapped[kept]).all() else (verts, tets)
+
+
+def _flat_on_a_plane(p: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """(m,) bool: tets p (m, 4, 3) whose four nodes lie exactly on one box plane."""
+    flat = np.zeros(len(p), bool)
+    for a in range(3):
+        for value in (0.0, box[a]):
+            flat |= (p[:, :, a] == value).all(axis=1)
+    return flat
 
 
 def _snap_to_box(points: np.ndarray, tets: np.ndarray, box: np.ndarray, reach: float) -> np.ndarray:
