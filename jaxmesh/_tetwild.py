@@ -10,6 +10,9 @@ the field's label at its centroid). fTetWild runs on all cores and its result va
 
 from __future__ import annotations
 
+import os
+import tempfile
+
 import numpy as np
 from skimage.measure import marching_cubes
 
@@ -52,7 +55,14 @@ def tetwild_mesh(microstructure, h: float, *, epsilon: float = 1e-3) -> Mesh:
     corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=float) * box
     points = np.vstack([sv, corners])
     tris = np.vstack([sf, _BOX_TRIANGLES + len(sv)]).astype(np.int32)
-    verts, tets = pytetwild.tetrahedralize(points, tris, edge_length_abs=float(h), epsilon=float(epsilon), quiet=True)
+    cwd = os.getcwd()
+    with tempfile.TemporaryDirectory(prefix="jaxmesh_tetwild_") as scratch:
+        os.chdir(scratch)  # fTetWild writes __tracked_surface.stl into the working directory
+        try:
+            verts, tets = pytetwild.tetrahedralize(points, tris, edge_length_abs=float(h), epsilon=float(epsilon),
+                                                   quiet=True)
+        finally:
+            os.chdir(cwd)
     verts, tets = np.asarray(verts, dtype=np.float64), np.asarray(tets, dtype=np.int64)
     if not len(tets):
         raise MeshingError("volume", "fTetWild returned no tetrahedra (hint: a smaller h)")

@@ -30,8 +30,10 @@ def test_levelset_surface_reaches_the_box_and_points_outwards(cut_sphere):
     assert empty[0].shape == (0, 3) and empty[1].shape == (0, 3)
 
 
-def test_tetwild_mesh_is_valid_but_neither_periodic_nor_conforming(cut_sphere):
+def test_tetwild_mesh_is_valid_but_neither_periodic_nor_conforming(cut_sphere, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
     mesh = tetwild_mesh(cut_sphere, 0.08)
+    assert not list(tmp_path.iterdir())  # fTetWild's scratch file stays out of the working directory
     assert not mesh.periodic and mesh.metadata["backend"] == "tetwild"
     report = validate(mesh, cut_sphere)
     # by design the interface is off the level set; fTetWild may leave a few box nodes inside its envelope
