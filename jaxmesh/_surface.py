@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from ._errors import MeshingError
+from ._periodic import minimum_image
 from ._quality import min_angles
 from ._surface_ops import (
     collapse_edges,
@@ -438,7 +439,7 @@ def settle_caps(points, phi_fn, h_fn, box, newton_steps: int):
     for a in range(3):
         for sign in (-1.0, 1.0):
             i = int(np.argmax(sign * points[:, a]))
-            plane = np.round(points[i, a] / L[a]) * L[a]
+            plane = points[i, a] - minimum_image(points[i, a], L[a])  # the nearest plane k L
             h = float(evaluate_size(h_fn, points[i][None])[0])
             if not -h < sign * (points[i, a] - plane) < h:
                 continue

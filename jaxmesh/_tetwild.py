@@ -17,7 +17,8 @@ import numpy as np
 from skimage.measure import marching_cubes
 
 from ._errors import MeshingError
-from ._mesh import Mesh
+from ._mesh import Mesh, facet_table
+from ._quality import signed_volumes
 
 # the 12 triangles of the box, outward: corner c = 4 i + 2 j + k sits at (i Lx, j Ly, k Lz)
 _BOX_TRIANGLES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
@@ -66,8 +67,8 @@ def tetwild_mesh(microstructure, h: float, *, epsilon: float = 1e-3) -> Mesh:
     verts, tets = np.asarray(verts, dtype=np.float64), np.asarray(tets, dtype=np.int64)
     if not len(tets):
         raise MeshingError("volume", "fTetWild returned no tetrahedra (hint: a smaller h)")
-    six_v = _six(verts[tets])
-    tets[six_v < 0] = tets[six_v < 0][:, [1, 0, 2, 3]]
+    negative = signed_volumes(verts, tets) < 0
+    tets[negative] = tets[negative][:, [1, 0, 2, 3]]
     verts, tets = _settle_on_box(verts, tets, box, 2.0 * epsilon * float(np.linalg.norm(box)))
     used = np.unique(tets)
     remap = np.full(len(verts), -1)
@@ -79,58 +80,53 @@ def tetwild_mesh(microstructure, h: float, *, epsilon: float = 1e-3) -> Mesh:
     return Mesh(points=verts, cells=tets, inclusion_id=ids, box=tuple(box), periodic=False, metadata=meta)
 
 
-def _six(p: np.ndarray) -> np.ndarray:
-    """Six times the signed volumes of tets p (m, 4, 3)."""
-    return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
-
-
-def _solid(p: np.ndarray) -> np.ndarray:
-    """(m,) bool: tets p (m, 4, 3) positive and not flat (6V above 6e-9 of the longest edge cubed)."""
+def _solid(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(m,) bool: tets positive and not flat by the validator's measure (V above 1e-9 l_max^3)."""
+    p = points[tets]
     longest = np.linalg.norm(p[:, [0, 0, 0, 1, 1, 2]] - p[:, [1, 2, 3, 2, 3, 3]], axis=2).max(axis=1)
-    return _six(p) > 6e-9 * longest**3
+    return signed_volumes(points, tets) > 1e-9 * longest**3
+
+
+def _flat_on_a_plane(points: np.ndarray, tets: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """(m,) bool: tets whose four nodes lie exactly on one box plane."""
+    flat = np.zeros(len(tets), bool)
+    for a in range(3):
+        for value in (0.0, box[a]):
+            flat |= (points[tets, a] == value).all(axis=1)
+    return flat
 
 
 def _settle_on_box(verts: np.ndarray, tets: np.ndarray, box: np.ndarray, reach: float):
-    """Box nodes onto their planes (`_snap_to_box`), keeping every tet positive: tets left flat on one
+    """Box nodes onto their planes (`_snap_to_box`), keeping every tet solid: tets left flat on one
     plane (slivers inside fTetWild's envelope) are dropped; snaps that would flatten or invert another
-    tet are undone, then retried one node at a time. Returns (points, tets)."""
+    tet are undone, then retried one node at a time. Returns (points, tets), fTetWild's own if that fails."""
     target = _snap_to_box(verts, tets, box, reach)
     snapped, undone = target.copy(), np.zeros(len(verts), bool)
     for _ in range(20):
-        kept = tets[~_flat_on_a_plane(snapped[tets], box)]
-        bad = ~_solid(snapped[kept])
+        kept = tets[~_flat_on_a_plane(snapped, tets, box)]  # re-derived: an undone node can lift a sliver
+        bad = ~_solid(snapped, kept)
         if not bad.any():
             break
         nodes = np.unique(kept[bad])
         snapped[nodes] = verts[nodes]
         undone[nodes] = True
     else:
-        return verts, tets  # as fTetWild left them
+        return verts, tets
     for i in np.flatnonzero(undone & (target != verts).any(axis=1)):  # one at a time: most fit alone
         star = tets[(tets == i).any(axis=1)]
-        local = snapped[star]
-        local[star == i] = target[i]
-        if _solid(local[~_flat_on_a_plane(local, box)]).all():
-            snapped[i] = target[i]
-    kept = tets[~_flat_on_a_plane(snapped[tets], box)]
-    return (snapped, kept) if _solid(snapped[kept]).all() else (verts, tets)
-
-
-def _flat_on_a_plane(p: np.ndarray, box: np.ndarray) -> np.ndarray:
-    """(m,) bool: tets p (m, 4, 3) whose four nodes lie exactly on one box plane."""
-    flat = np.zeros(len(p), bool)
-    for a in range(3):
-        for value in (0.0, box[a]):
-            flat |= (p[:, :, a] == value).all(axis=1)
-    return flat
+        before = snapped[i].copy()
+        snapped[i] = target[i]
+        if not _solid(snapped, star[~_flat_on_a_plane(snapped, star, box)]).all():
+            snapped[i] = before
+    kept = tets[~_flat_on_a_plane(snapped, tets, box)]
+    return (snapped, kept) if _solid(snapped, kept).all() else (verts, tets)
 
 
 def _snap_to_box(points: np.ndarray, tets: np.ndarray, box: np.ndarray, reach: float) -> np.ndarray:
     """Boundary nodes within `reach` of a box plane moved onto it: fTetWild keeps the box surface only
     within its envelope, and a face node 1e-4 off its plane is a boundary facet off the box."""
-    faces = np.sort(tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
-    uniq, count = np.unique(faces, axis=0, return_counts=True)
-    on_boundary = np.unique(uniq[count == 1])
+    table = facet_table(tets, len(points))
+    on_boundary = np.unique(table.facets[table.counts == 1])
     out = points.copy()
     for a in range(3):
         x = out[on_boundary, a]

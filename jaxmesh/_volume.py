@@ -204,8 +204,7 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
         miss = missing_triangles(surface.triangles, cells, len(points))
         info["rounds"] = rnd
         history.append(int(miss.sum()))
-        if rnd == 0:
-            info["missing_first"] = int(miss.sum())
+        info["missing_first"] = history[0]
         if len(history) >= 6 and history[-1] > history[-2] > history[-3] > history[-4] > history[-5]:
             raise MeshingError("volume", f"surface recovery diverges (missing triangles per round: {history}); "
                                "seen where an inclusion's cut by a box plane passes within h/2 of a box edge; hint: "
