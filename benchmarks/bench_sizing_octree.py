@@ -98,7 +98,7 @@ def main() -> None:
     _, t2 = timed(size_sources, ms)
     rows.append(("sources + DN2 + curvature", t1, t2))
     iis, nb_el, alpha, g, h_max, h_min = params.resolved()
-    h0 = source_sizes(src.points, src.ids, src.dn2, src.kappa, iis, nb_el, alpha, h_min)
+    h0 = source_sizes(src.points, src.ids, src.dn2, src.kappa, iis, nb_el, alpha, h_min, src.box_gap)
     lg = lambda: limit_gradient(h0, src.points, ms.box, shape, g, h_max)  # noqa: E731
     _, t1 = timed(lg)
     _, t2 = timed(lg)

@@ -1,7 +1,8 @@
 """The size function h(x) (paper section 4.2): source sizes on the interfaces, gradient limiting.
 
 Pipeline: source points x_sp = crossings of phi = 0 on the grid edges (:func:`interface_sources`);
-sizes there h0 = min(iis, DN2 / nb_el, alpha / |kappa|) (eq. 12, 13, 17, 19, :func:`source_sizes`);
+sizes there h0 = min(iis, DN2 / nb_el, alpha / |kappa|) (eq. 12, 13, 17, 19, :func:`source_sizes`),
+and at most the thickness of a layer the box cuts off (:func:`box_gaps`);
 the field h(x) = min(h_max, min_sp h0(x_sp) + g |x - x_sp|) with PERIODIC distances (eq. 20,
 :func:`limit_gradient`) on the level-set grid, wrapped in a :class:`SizeField`.
 
@@ -209,8 +210,10 @@ def interface_sources(field, box: Sequence[float] | None = None, *, labels: Arra
 
 def source_sizes(points: Float[ArrayLike, "s d"], ids: Int[ArrayLike, " s"],
                  dn2_at_points: Float[ArrayLike, " s"], kappa_at_points: Float[ArrayLike, " s"],
-                 iis, nb_el, curv_alpha, h_min=None) -> Float[Array, " s"]:
-    """h0 = max(h_min, min(iis, DN2 / nb_el, alpha / |kappa|)) at the source points (eq. 12-19).
+                 iis, nb_el, curv_alpha, h_min=None, box_gap_at_points: Float[ArrayLike, " s"] | None = None
+                 ) -> Float[Array, " s"]:
+    """h0 = max(h_min, min(iis, DN2 / nb_el, alpha / |kappa|, box gap / min(nb_el, 1))) at the
+    source points (eq. 12-19).
 
     Args:
         points: (s, d) source points and ids: (s,) their inclusion ids (sizes are pointwise:
@@ -218,17 +221,24 @@ def source_sizes(points: Float[ArrayLike, "s d"], ids: Int[ArrayLike, " s"],
         dn2_at_points: (s,) distance to the second nearest inclusion at each source.
         kappa_at_points: (s,) max |principal curvature| of the source's own inclusion.
         iis, nb_el, curv_alpha: scalars (JAX scalars to differentiate); h_min: optional floor.
+        box_gap_at_points: optional (s,) :func:`box_gaps`: one element across such a layer (fewer
+            when nb_el < 1).
 
     Returns:
         (s,) source sizes h0.
     """
     s = np.shape(points)[0]
-    for name, arr in (("ids", ids), ("dn2_at_points", dn2_at_points), ("kappa_at_points", kappa_at_points)):
+    checked = [("ids", ids), ("dn2_at_points", dn2_at_points), ("kappa_at_points", kappa_at_points)]
+    if box_gap_at_points is not None:
+        checked.append(("box_gap_at_points", box_gap_at_points))
+    for name, arr in checked:
         if np.shape(arr) != (s,):
             raise ValueError(f"source_sizes expected {name} of shape ({s},) (one per source point), "
                              f"got {np.shape(arr)}. Hint: evaluate it at the source points.")
     kappa = jnp.maximum(jnp.abs(jnp.asarray(kappa_at_points)), 1e-300)  # flat: h_curv huge
     h0 = jnp.minimum(jnp.minimum(iis, jnp.asarray(dn2_at_points) / nb_el), curv_alpha / kappa)
+    if box_gap_at_points is not None:  # the matrix goes on through a periodic face: one element across
+        h0 = jnp.minimum(h0, jnp.asarray(box_gap_at_points) / jnp.minimum(nb_el, 1.0))
     return h0 if h_min is None else jnp.maximum(h0, h_min)
 
 
@@ -465,6 +475,7 @@ class SizeSources(NamedTuple):
     ids: np.ndarray  # (s,) inclusion ids
     dn2: Array  # (s,) DN2 at the sources (linear interpolation of the grid)
     kappa: Array  # (s,) max |principal curvature| of each source's own inclusion
+    box_gap: np.ndarray | None = None  # (s,) box_gaps (None: no such term)
 
 
 def _curvature(phi_fn: Callable, points: np.ndarray) -> np.ndarray:
@@ -483,8 +494,40 @@ def _curvature(phi_fn: Callable, points: np.ndarray) -> np.ndarray:
         return np.asarray(max_abs_curvature(phi_fn, padded))[:m]
 
 
+def _grid_normals(dn1: np.ndarray, box, points) -> np.ndarray:
+    """Unit normals at (s, d) points from periodic central differences of dn1 (linear interpolation)."""
+    spacing = np.asarray(box) / np.asarray(dn1.shape)
+    grad = [(np.roll(dn1, -1, a) - np.roll(dn1, 1, a)) / (2.0 * spacing[a]) for a in range(dn1.ndim)]
+    g = np.stack([np.asarray(interpolate_linear(jnp.asarray(c), box, points)) for c in grad], axis=-1)
+    return g / np.maximum(np.linalg.norm(g, axis=-1, keepdims=True), 1e-300)
+
+
+def box_gaps(points: np.ndarray, normals: np.ndarray, box, max_angle: float = 15.0) -> np.ndarray:
+    """Per surface point: the distance to the nearest box face, edge or corner that the surface
+    faces (its normal within max_angle degrees of the direction to it), inf where there is none.
+
+    Such a point borders a layer as thin as that distance between the surface and the box: a cap
+    the box cuts off, or an inclusion (or its trace on a face) passing close to a plane, an edge or
+    a corner without crossing it. The box faces are meshed as constraints, so the layer needs
+    elements about that thin (paper section 6 sees flat elements there); the generator's box_gap
+    keeps its own inclusions clear of such layers.
+    """
+    pts, L = np.asarray(points, dtype=float), np.asarray(box, dtype=float)
+    x = np.mod(pts, L)
+    to_plane = np.where(x < 0.5 * L, x, x - L)  # signed offset from the nearest box plane per axis
+    cos_min = math.cos(math.radians(max_angle))
+    gap = np.full(len(pts), np.inf)
+    for k in range(1, pts.shape[1] + 1):
+        for axes in itertools.combinations(range(pts.shape[1]), k):
+            v = to_plane[:, list(axes)]
+            dist = np.linalg.norm(v, axis=1)
+            facing = np.abs(np.sum(normals[:, list(axes)] * v, axis=1)) >= cos_min * dist
+            gap = np.where(facing & (dist > 0), np.minimum(gap, dist), gap)
+    return gap
+
+
 def size_sources(microstructure) -> SizeSources:
-    """Sources, their DN2 and their curvature (each inclusion's own phi_fn) for a Microstructure."""
+    """Sources, their DN2, box gaps and curvature (each inclusion's own phi_fn) for a Microstructure."""
     ms = microstructure
     points, ids = interface_sources(ms)
     # DN2 may be inf (a single inclusion): clamp to a length no periodic distance exceeds
@@ -495,7 +538,10 @@ def size_sources(microstructure) -> SizeSources:
         sel = np.nonzero(ids == inc.id)[0]
         if sel.size:
             kappa[sel] = _curvature(inc.phi_fn, pts[sel])
-    return SizeSources(points, ids, dn2, jnp.asarray(kappa))
+    box_gap = box_gaps(pts, _grid_normals(np.asarray(ms.dn1, dtype=float), ms.box, points), ms.box)
+    # finer sizes would be lost in the grid interpolation of h (and the grid resolves no thinner layer)
+    box_gap = np.maximum(box_gap, min(b / n for b, n in zip(ms.box, ms.grid_shape)) / 6.0)
+    return SizeSources(points, ids, dn2, jnp.asarray(kappa), box_gap)
 
 
 def size_function(microstructure, params: SizeParams | None = None, *,
@@ -519,7 +565,7 @@ def size_function(microstructure, params: SizeParams | None = None, *,
     check_params_against_box(params, microstructure.box)
     src = size_sources(microstructure) if sources is None else sources
     iis, nb_el, alpha, g, h_max, h_min = params.resolved()
-    h0 = source_sizes(src.points, src.ids, src.dn2, src.kappa, iis, nb_el, alpha, h_min)
+    h0 = source_sizes(src.points, src.ids, src.dn2, src.kappa, iis, nb_el, alpha, h_min, src.box_gap)
     h = limit_gradient(h0, src.points, microstructure.box, microstructure.grid_shape, g, h_max,
                        periodic=microstructure.periodic)
     return SizeField(h, microstructure.box, src.points, h0)

@@ -49,3 +49,16 @@ def test_ellipsoid_grazing_two_planes_near_a_box_edge():
     mesh = mesh_rve(ms, MeshConfig(h=0.05, seed=0))
     report = validate(mesh, ms)
     assert report.ok, report.summary()
+
+
+def test_sphere_trace_passing_just_above_a_box_edge():
+    # crosses x = 0 deeply; its trace on x = 0 passes 0.05 grid steps above the edge x = z = 0
+    # (a 30-sphere RVE, inclusion 21). Without the box gap in the size function the face meshes
+    # there were too coarse for that layer and the surface recovery diverged.
+    n, radius, gap, cx = 32, 0.084, 0.0016, 0.03
+    centre = np.array([cx, 0.5, np.sqrt((radius + gap) ** 2 - cx**2)])
+    ms = microstructure_from_specs([InclusionSpec("sphere", centre, np.full(3, radius), np.eye(3))],
+                                   (1.0, 1.0, 1.0), (n,) * 3)
+    mesh = mesh_rve(ms, MeshConfig(seed=0))
+    report = validate(mesh, ms)
+    assert report.ok, report.summary()

@@ -113,3 +113,16 @@ def test_random_rve_default_settings(shape, seed):
     ms = _levelset_rve(specs, n=48)
     mesh = mesh_rve(ms, MeshConfig(seed=seed))
     _check(mesh, ms)
+
+
+def test_float32_run_warns():
+    import jax
+
+    from jaxmesh._pipeline import _warn_if_float32
+
+    jax.config.update("jax_enable_x64", False)
+    try:
+        with pytest.warns(UserWarning, match="jax_enable_x64"):
+            _warn_if_float32()
+    finally:
+        jax.config.update("jax_enable_x64", True)

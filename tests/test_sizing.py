@@ -11,6 +11,7 @@ from jaxmesh._periodic import minimum_image
 from jaxmesh._sizing import (
     SizeField,
     SizeParams,
+    box_gaps,
     interface_edges,
     interface_sources,
     limit_gradient,
@@ -244,6 +245,43 @@ def test_source_sizes_formula():
     h0 = source_sizes(np.zeros((4, 3)), np.ones(4), jnp.array([0.3, 0.03, 0.3, 1e-6]),
                       jnp.array([0.0, 0.0, 20.0, 0.0]), 0.05, 3.0, 0.6, h_min=0.001)
     np.testing.assert_allclose(h0, [0.05, 0.01, 0.03, 0.001])
+
+
+def test_box_gaps_facing_only():
+    box = (1.0, 1.0, 1.0)
+    points = np.array([
+        [0.5, 0.5, 0.004],  # bottom of a sphere 0.004 above z = 0: a thin layer
+        [0.5, 0.5, 0.996],  # a cap 0.004 deep cut off at z = L (faces z = L through the wrap)
+        [0.5, 0.5, 0.004],  # the same point on a surface crossing z = 0 steeply: no layer
+        [0.002, 0.5, 0.002],  # a trace passing 0.0028 from the edge x = z = 0, facing it
+        [0.3, 0.5, 0.5],  # far from every plane
+    ])
+    up, diag = np.array([0.0, 0.0, -1.0]), np.array([-1.0, 0.0, -1.0]) / np.sqrt(2.0)
+    normals = np.array([up, -up, [1.0, 0.0, 0.0], diag, [0.0, 0.0, 1.0]])
+    gap = box_gaps(points, normals, box)
+    np.testing.assert_allclose(gap[:2], 0.004)
+    assert gap[2] > 0.2 and gap[4] > 0.2  # only the distant planes x = 0, z = 0 ahead of them
+    np.testing.assert_allclose(gap[3], 0.002 * np.sqrt(2.0))
+    # 20 degrees off the direction to the plane: beyond the default 15
+    tilted = np.array([[np.sin(np.radians(20.0)), 0.0, -np.cos(np.radians(20.0))]])
+    assert box_gaps(points[:1], tilted, box)[0] > 0.2
+    assert box_gaps(points[:1], tilted, box, max_angle=30.0)[0] == pytest.approx(0.004)
+
+
+def test_size_refined_where_a_trace_passes_near_a_box_edge():
+    # the sphere crosses x = 0 deeply, and its trace there passes 0.003 above the edge x = z = 0
+    centre, radius = np.array([0.03, 0.5, 0.09]), 0.09
+    gap = np.linalg.norm(centre[[0, 2]]) - radius
+    assert 0.0 < gap < 0.005
+    ms = Microstructure.from_functions([sphere_sdf(jnp.asarray(centre), radius)], (1.0, 1.0, 1.0), (32, 32, 32))
+    src = size_sources(ms)
+    field = size_function(ms, SizeParams(), sources=src)
+    near_edge = np.asarray(field(jnp.array([[0.0, 0.5, 0.0]])))[0]
+    far_side = np.asarray(field(jnp.asarray(centre + [0.0, 0.0, radius])[None]))[0]
+    assert near_edge < 0.4 * far_side
+    assert np.isfinite(src.box_gap).sum() > 0 and np.all(src.box_gap >= (1 / 32) / 6 - 1e-12)
+    without = size_function(ms, SizeParams(), sources=src._replace(box_gap=None))
+    assert np.asarray(without(jnp.array([[0.0, 0.5, 0.0]])))[0] > 2.0 * near_edge
 
 
 def test_bad_inputs(two_spheres):
