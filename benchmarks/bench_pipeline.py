@@ -19,7 +19,8 @@ nor its narrowness setting, so the presets are chosen to land near those counts:
   everywhere, so iis alone barely changes the mesh: on 180 spheres of radius N(0.081, 0.015) the
   predicted count (c * integral of h^-3, `SizeField.element_count`) was the same for iis 0.05
   and 0.03 at nb_el 3 (4.7M) and at nb_el 1 (0.59M). The presets therefore also set nb_el:
-  coarse iis 0.05, nb_el 0.5 (half an element across the narrowest gaps); fine iis 0.03, nb_el 1.
+  coarse iis 0.05, nb_el 0.5 (half an element across the narrowest gaps); fine iis 0.03, nb_el 1.25
+  (nb_el 1 gave 1.40M tets; `--estimate` predicted 648k at 1.0, 873k at 1.2, 1.0M at 1.3 on 2026-11-28).
   Measured on 2026-11-28 (benchmarks/README.md): coarse 321k tets at commit 94a7df0 (nb_el 0.5; it
   failed in the surfaces before the thin-cap and fold fixes), where nb_el 0.75 gave 791k and a mean
   q of 0.838 instead of 0.822; fine 1.40M. `--estimate` prints the predicted count of a setting
@@ -47,7 +48,7 @@ import numpy as np
 
 PRESETS = {  # Table 1 rows: mesh settings (the geometry is the same, see the docstring)
     "coarse": {"iis": 0.05, "nb_el": 0.5},
-    "fine": {"iis": 0.03, "nb_el": 1.0},
+    "fine": {"iis": 0.03, "nb_el": 1.25},
 }
 
 
