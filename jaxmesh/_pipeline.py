@@ -24,7 +24,8 @@ class MeshConfig:
     Attributes:
         iis: initial interface size (largest element size on the interfaces), in box units.
             Default 0.05: the paper's coarse setting for a unit box.
-        nb_el: elements across the narrowest gaps (h_nar = DN2 / nb_el).
+        nb_el: elements across the narrowest gaps (h_nar = DN2 / nb_el); min(nb_el, 1) across a layer
+            the box cuts off (a shallow cap, a trace beside a box edge).
         curv_alpha: curvature sensitivity (h_curv = curv_alpha / |kappa|).
         grad: gradient limit of the size function.
         h_max: largest element size (None: 4 * iis).

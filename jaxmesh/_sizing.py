@@ -512,9 +512,8 @@ def box_gaps(points: np.ndarray, normals: np.ndarray, box, max_angle: float = 15
     elements about that thin (paper section 6 sees flat elements there); the generator's box_gap
     keeps its own inclusions clear of such layers.
     """
-    pts, L = np.asarray(points, dtype=float), np.asarray(box, dtype=float)
-    x = np.mod(pts, L)
-    to_plane = np.where(x < 0.5 * L, x, x - L)  # signed offset from the nearest box plane per axis
+    pts = np.asarray(points, dtype=float)
+    to_plane = minimum_image(pts, np.asarray(box, dtype=float))  # offset from the nearest box plane per axis
     cos_min = math.cos(math.radians(max_angle))
     gap = np.full(len(pts), np.inf)
     for k in range(1, pts.shape[1] + 1):
