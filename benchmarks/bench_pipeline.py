@@ -23,7 +23,8 @@ nor its narrowness setting, so the presets are chosen to land near those counts:
   (nb_el 1 gave 1.40M tets; `--estimate` predicted 648k at 1.0, 873k at 1.2, 1.0M at 1.3 on 2026-11-28).
   Measured on 2026-11-28 (benchmarks/README.md): coarse 321k tets at commit 94a7df0 (nb_el 0.5; it
   failed in the surfaces before the thin-cap and fold fixes), where nb_el 0.75 gave 791k and a mean
-  q of 0.838 instead of 0.822; fine 1.40M. `--estimate` prints the predicted count of a setting
+  q of 0.838 instead of 0.822; fine 1.40M at nb_el 1, 2.23M at nb_el 1.25 (fdf44f6, with box gaps;
+  coarse then 346k). `--estimate` prints the predicted count of a setting
   without meshing.
 
 Prints per-stage times (size, surfaces, volume sub-stages: interior nodes, Delaunay + recovery,
