@@ -538,8 +538,10 @@ def size_sources(microstructure) -> SizeSources:
         if sel.size:
             kappa[sel] = _curvature(inc.phi_fn, pts[sel])
     box_gap = box_gaps(pts, _grid_normals(np.asarray(ms.dn1, dtype=float), ms.box, points), ms.box)
-    # finer sizes would be lost in the grid interpolation of h (and the grid resolves no thinner layer)
-    box_gap = np.maximum(box_gap, min(b / n for b, n in zip(ms.box, ms.grid_shape)) / 6.0)
+    # finer sizes would be lost in the grid interpolation of h (and the grid resolves no thinner layer);
+    # finite, so that jax.grad through box_gap / nb_el stays finite where the term is not the minimum
+    step = min(b / n for b, n in zip(ms.box, ms.grid_shape))
+    box_gap = np.clip(box_gap, step / 6.0, float(np.linalg.norm(ms.box)))
     return SizeSources(points, ids, dn2, jnp.asarray(kappa), box_gap)
 
 
