@@ -237,7 +237,7 @@ def source_sizes(points: Float[ArrayLike, "s d"], ids: Int[ArrayLike, " s"],
                              f"got {np.shape(arr)}. Hint: evaluate it at the source points.")
     kappa = jnp.maximum(jnp.abs(jnp.asarray(kappa_at_points)), 1e-300)  # flat: h_curv huge
     h0 = jnp.minimum(jnp.minimum(iis, jnp.asarray(dn2_at_points) / nb_el), curv_alpha / kappa)
-    if box_gap_at_points is not None:  # the matrix goes on through a periodic face: one element across
+    if box_gap_at_points is not None:  # no material gap (the phase goes on through the face): one element across
         h0 = jnp.minimum(h0, jnp.asarray(box_gap_at_points) / jnp.minimum(nb_el, 1.0))
     return h0 if h_min is None else jnp.maximum(h0, h_min)
 
