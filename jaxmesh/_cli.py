@@ -244,7 +244,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--box", type=float, nargs="+", default=None)
     m.add_argument("--h", type=float, default=None, help="uniform element size (overrides the size function)")
     m.add_argument("--iis", type=float, default=None, help="initial interface size")
-    m.add_argument("--nb-el", type=float, default=None, help="elements across the narrowest gaps between inclusions (and min(nb_el, 1) across layers the box cuts off)")
+    m.add_argument("--nb-el", type=float, default=None,
+                   help="elements across the narrowest gaps between inclusions "
+                        "(min(nb_el, 1) across layers the box cuts off)")
     m.add_argument("--curv-alpha", type=float, default=None, help="curvature sensitivity: h = alpha / |kappa|")
     m.add_argument("--grad", type=float, default=None, help="gradient limit of the size function")
     m.add_argument("--h-max", type=float, default=None)
