@@ -52,6 +52,29 @@ def image_shifts(dim: int, box) -> np.ndarray:
     return k * np.asarray(box, dtype=float)
 
 
+def points_near(points, centres, radii, box, periodic: bool = True) -> list[np.ndarray]:
+    """Per centre i, the sorted indices of points within radii[i] of it (minimum image when periodic).
+
+    NumPy only. A k-d tree over the points (periodic: scipy's boxsize) instead of a distance from
+    every point to every centre.
+    """
+    from scipy.spatial import cKDTree
+
+    points, centres = np.asarray(points, dtype=float), np.asarray(centres, dtype=float)
+    if not len(points) or not len(centres):
+        return [np.zeros(0, np.int64) for _ in range(len(centres))]
+    box = np.asarray(box, dtype=float)
+    if periodic:
+        points, centres = wrap(points, box), wrap(centres, box)
+        points = np.where(points >= box, points - box, points)  # wrap can round up to L itself
+        centres = np.where(centres >= box, centres - box, centres)
+        tree = cKDTree(points, boxsize=box)
+    else:
+        tree = cKDTree(points)
+    found = tree.query_ball_point(centres, np.asarray(radii, dtype=float))
+    return [np.sort(np.asarray(f, dtype=np.int64)) for f in found]
+
+
 def wrap_index(index, n):
     """Periodic grid index wrap (integer arrays, NumPy or JAX)."""
     return index % n

@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxmesh._periodic import minimum_image, points_near
 from jaxmesh.geometry._components import chord_thickness, label_components
 from jaxmesh.geometry._grid import grid_phi_fn, make_levelset_grid
 from jaxmesh.geometry._microstructure import Microstructure
@@ -249,6 +250,35 @@ def test_from_functions_analytic():
 def test_chord_thickness_of_a_slab():
     field = np.tile(np.abs(np.arange(12) - 5.5)[:, None] - 1.25, (1, 6))  # slab 2.5 steps thick
     assert chord_thickness(field, field < 0) == pytest.approx(2.5)
+
+
+@pytest.mark.parametrize("periodic", [True, False])
+def test_points_near_matches_brute_force(periodic):
+    rng = np.random.default_rng(3)
+    box = np.array([1.0, 2.0, 0.5])
+    pts = rng.uniform(-0.2, 1.2, (3000, 3)) * box  # some outside the cell
+    pts[:3] = [[0, 0, 0], box, [1.0, 0.0, 0.5]]  # on the planes
+    centres = rng.uniform(-0.5, 1.5, (40, 3)) * box
+    radii = rng.uniform(0.05, 0.9, 40)
+    found = points_near(pts, centres, radii, box, periodic)
+    for c, r, f in zip(centres, radii, found):
+        d = pts - c
+        if periodic:
+            d = minimum_image(d, box)
+        np.testing.assert_array_equal(f, np.flatnonzero(np.linalg.norm(d, axis=1) <= r))
+
+
+def test_chord_thickness_does_not_depend_on_the_window():
+    """The component is cropped to its bounds plus one outside layer: a wider window, or the
+    component at the window's end (periodic there), gives the same thickness."""
+    x = np.arange(40.0)
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    field = np.sqrt((X - 20.3) ** 2 + (Y - 19.6) ** 2 / 4 + (Z - 20.1) ** 2) - 6.2  # ellipsoid, half-axes 6.2, 12.4
+    tight = field[12:30, 6:34, 12:30]
+    assert chord_thickness(field, field < 0) == chord_thickness(tight, tight < 0)
+    wrapped = np.roll(field, 20, axis=0)  # split across the window's ends along x
+    assert chord_thickness(wrapped, wrapped < 0) == pytest.approx(chord_thickness(field, field < 0), abs=1e-12)
+    assert 11.0 < chord_thickness(field, field < 0) < 12.5  # chords of the widest section
 
 
 # ---- bad inputs ----

@@ -272,6 +272,14 @@ def chord_thickness(field: np.ndarray, own: np.ndarray) -> float:
     """Thickness of a component in grid steps: the largest, over its nodes, of the shortest of the
     axis-parallel chords through the node (chord ends at the linear zero crossings). Window axes
     are treated as periodic; a chord with no outside node is infinite."""
+    if not own.any():
+        return 0.0
+    crop = []  # the component's bounding box plus one outside layer: the same chords, fewer nodes
+    for k in range(own.ndim):
+        hit = np.flatnonzero(own.any(axis=tuple(j for j in range(own.ndim) if j != k)))
+        inner = hit[0] >= 1 and hit[-1] <= own.shape[k] - 2
+        crop.append(slice(hit[0] - 1, hit[-1] + 2) if inner else slice(None))
+    field, own = field[tuple(crop)], own[tuple(crop)]
     best = np.full(own.shape, np.inf)
     for k in range(own.ndim):
         m = np.moveaxis(own, k, -1)

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import ndimage
 
-from .._periodic import image_shifts, minimum_image, wrap
+from .._periodic import image_shifts, minimum_image, points_near, wrap
 from . import _components as comp
 from ._components import check_box, check_field, check_order, check_points, gradient_scale, size_errors
 from ._grid import bspline_coefficients, interpolate_cubic, interpolate_linear
@@ -231,6 +231,17 @@ class Microstructure:
             u = minimum_image(u, np.asarray(self.box))
         return np.linalg.norm(np.maximum(np.abs(u) - half, 0.0), axis=-1)
 
+    def _near_bounds(self, pts: np.ndarray, margin: float) -> list[np.ndarray]:
+        """Per inclusion, the indices of points within margin of its bounds: the points in the ball
+        around the bounds (a k-d tree query), then the exact box distance on those."""
+        if not self.inclusions:
+            return []
+        lower = np.array([inc.lower for inc in self.inclusions], dtype=float)
+        upper = np.array([inc.upper for inc in self.inclusions], dtype=float)
+        radii = np.linalg.norm(upper - lower, axis=1) / 2 + margin
+        balls = points_near(pts, (lower + upper) / 2, radii * (1 + 1e-9), self.box, self.periodic)
+        return [ball[self._bbox_distance(inc, pts[ball]) <= margin] for inc, ball in zip(self.inclusions, balls)]
+
     def _inclusion(self, inclusion_id) -> Inclusion:
         if not (isinstance(inclusion_id, (int, np.integer)) and 1 <= inclusion_id <= len(self.inclusions)):
             raise ValueError(
@@ -293,7 +304,7 @@ class Microstructure:
     def _evaluate_near(self, pts: np.ndarray, margin: float):
         """Yield (inclusion index, selected point indices, phi values) for every inclusion at the
         points within margin of its bounds; equal windows are evaluated in one compiled call."""
-        near = [np.flatnonzero(self._bbox_distance(inc, pts) <= margin) for inc in self.inclusions]
+        near = self._near_bounds(pts, margin)
         stacks, others = self._groups()
         for func, params, box, wbox, members in stacks:
             counts = [len(near[i]) for i in members]
