@@ -151,8 +151,11 @@ def delaunay_tets(points: np.ndarray, box, config: VolumeConfig = VolumeConfig()
     Returns:
         (cells (m, 4) int64, info {'flat_dropped', 'flat_interior', 'coplanar'}).
     """
-    tri = Delaunay(points, qhull_options=config.qhull_options)
-    cells = np.asarray(tri.simplices, dtype=np.int64)
+    box = np.asarray(box, dtype=float)
+    cells, coplanar = _enclosed_delaunay(points, box, config.qhull_options)
+    if cells is None:
+        tri = Delaunay(points, qhull_options=config.qhull_options)
+        cells, coplanar = np.asarray(tri.simplices, dtype=np.int64), len(tri.coplanar)
     vol = signed_volumes(points, cells)
     neg = vol < 0
     cells[neg, :2] = cells[neg, 1::-1]
@@ -160,14 +163,38 @@ def delaunay_tets(points: np.ndarray, box, config: VolumeConfig = VolumeConfig()
     lmax = np.max([np.linalg.norm(p[:, i] - p[:, j], axis=1) for i, j in
                    ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))], axis=0)
     flat = np.abs(vol) <= config.flat_eps * lmax**3
-    box = np.asarray(box, dtype=float)
     on_plane = np.zeros(len(cells), bool)
     for a in range(3):
         for s in (0.0, 1.0):
             on_plane |= np.all(np.abs(p[:, :, a] - s * box[a]) <= 1e-9 * box[a], axis=1)
     info = {"flat_dropped": int((flat & on_plane).sum()), "flat_interior": int((flat & ~on_plane).sum()),
-            "coplanar": int(len(tri.coplanar))}
+            "coplanar": int(coplanar)}
     return cells[~(flat & on_plane)], info
+
+
+def _enclosed_delaunay(points: np.ndarray, box: np.ndarray, options: str) -> tuple[np.ndarray | None, int]:
+    """Delaunay tets of points in the box, computed with the corners of a 3x larger box added.
+
+    Qhull slows down when thousands of nodes lie on the hull's planar faces (box faces: 11.3 s
+    against 4.9 s on a 63k-node RVE). With the far corners the box faces are inside the hull, and
+    the tets without a far corner are kept if they fill the box exactly: volumes summing to the
+    box's and boundary faces on the box planes. Returns (None, 0) otherwise (then plain Qhull).
+    """
+    n = len(points)
+    far = np.stack(np.meshgrid(*[[-1.0, 2.0]] * 3, indexing="ij"), -1).reshape(-1, 3) * box
+    tri = Delaunay(np.concatenate([points, far]), qhull_options=options)
+    cells = np.asarray(tri.simplices, dtype=np.int64)
+    cells = cells[(cells < n).all(axis=1)]
+    if abs(np.abs(signed_volumes(points, cells)).sum() - np.prod(box)) > 1e-9 * np.prod(box):
+        return None, 0
+    faces = cells[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3)
+    _, first, count = np.unique(triangle_keys(faces, n), return_index=True, return_counts=True)
+    p = points[faces[first[count == 1]]]  # (b, 3, 3) boundary faces
+    on_box = np.zeros(len(p), bool)
+    for a in range(3):
+        for side in (0.0, box[a]):
+            on_box |= np.all(np.abs(p[:, :, a] - side) <= 1e-9 * box[a], axis=1)
+    return (cells, len(tri.coplanar)) if on_box.all() else (None, 0)
 
 
 def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: VolumeConfig = VolumeConfig(),
