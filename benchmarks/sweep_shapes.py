@@ -1,0 +1,265 @@
+"""Robustness sweep (not a test): varied shapes meshed with the CLI defaults.
+
+Builds each input in OUT_DIR (tori, rounded cubes, finite cylinders, a labelled image, a
+non-cubic box, a sphere near its images, spheres on a box corner / edge), runs `jaxmesh mesh`
+on it and prints one line per case.
+    .venv/bin/python benchmarks/sweep_shapes.py [OUT_DIR] [--only NAME ...] [--build-only]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from jaxmesh._periodic import minimum_image
+
+HERE = Path(__file__).resolve().parent.parent
+JAXMESH = HERE / ".venv" / "bin" / "jaxmesh"
+TIMEOUT = 900
+GAP = 0.03
+
+
+# --- signed distances (p: (..., 3) local coordinates, shape centred at the origin) ---------------
+
+def _grid(n: int, box=(1.0, 1.0, 1.0)) -> np.ndarray:
+    axes = [np.arange(n) * (L / n) for L in box]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+
+
+def _local(x, center, rot=None, box=(1.0, 1.0, 1.0)):
+    """Minimum-image offset x - center, rotated into the shape's frame (rot: local -> world)."""
+    d = minimum_image(x - np.asarray(center), np.asarray(box, dtype=float))
+    return d if rot is None else d @ rot  # row vectors: (R^T d^T)^T = d R
+
+
+def sd_sphere(p, r):
+    return np.linalg.norm(p, axis=-1) - r
+
+
+def sd_torus(p, R, r):  # axis z
+    q = np.hypot(p[..., 0], p[..., 1]) - R
+    return np.hypot(q, p[..., 2]) - r
+
+
+def sd_round_box(p, half, rr):
+    q = np.abs(p) - (np.asarray(half) - rr)
+    out = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
+    return out + np.minimum(q.max(axis=-1), 0.0) - rr
+
+
+def sd_capsule(p, length, r):  # axis z, total length `length`
+    h = length / 2 - r
+    z = np.clip(p[..., 2], -h, h)
+    return np.linalg.norm(p - np.stack([0 * z, 0 * z, z], axis=-1), axis=-1) - r
+
+
+def sd_cylinder(p, length, r):  # axis z, flat ends, exact
+    d = np.stack([np.hypot(p[..., 0], p[..., 1]) - r, np.abs(p[..., 2]) - length / 2], axis=-1)
+    return np.minimum(d.max(axis=-1), 0.0) + np.linalg.norm(np.maximum(d, 0.0), axis=-1)
+
+
+# --- random non-overlapping placement -----------------------------------------------------------
+
+def _place(rng, make, count: int, gap: float = GAP, tries: int = 20000):
+    """Random sequential addition of shapes (sdf(p_local), circumradius, center, rot).
+
+    The gap test is rigorous for exact signed distances: min over a fine sample grid of
+    max(sd_a, sd_b) is within h*sqrt(3)/2 of gap/2 (1-Lipschitz), so accept only when it is
+    at least gap/2 + h*sqrt(3)/2."""
+    shapes = []
+    h = 0.006
+    for _ in range(tries):
+        if len(shapes) == count:
+            return shapes
+        sd, rho = make(rng)
+        c, rot = rng.uniform(0, 1, 3), Rotation.random(random_state=rng).as_matrix()
+        near = [s for s in shapes
+                if np.linalg.norm(_local(c, s[2])) < rho + s[1] + gap]
+        ok = True
+        if near:
+            ax = np.arange(-rho - gap, rho + gap + h, h)
+            pts = c + np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+            mine = sd(_local(pts, c, rot))
+            pts = pts[mine < gap]
+            mine = mine[mine < gap]
+            for sd_b, _, cb, rb in near:
+                if np.min(np.maximum(mine, sd_b(_local(pts, cb, rb)))) < gap / 2 + h * np.sqrt(3) / 2:
+                    ok = False
+                    break
+        if ok:
+            shapes.append((sd, rho, c, rot))
+    raise RuntimeError(f"placed only {len(shapes)} of {count} shapes")
+
+
+def _union(shapes, n: int) -> np.ndarray:
+    x = _grid(n)
+    return np.min([sd(_local(x, c, rot)) for sd, _, c, rot in shapes], axis=0)
+
+
+def _crossing(shapes) -> int:
+    """How many shapes' circumspheres cross a box face (a rough count)."""
+    return sum(bool(np.any((c < rho) | (c > 1 - rho))) for _, rho, c, _ in shapes)
+
+
+# --- cases: each writes its input and returns (path, extra CLI args, note) -------------------------
+
+def case_torus(out: Path, n=48):
+    x = _grid(n)
+    phi = sd_torus(_local(x, (0.5, 0.5, 0.5)), 0.28, 0.1)
+    np.save(p := out / "torus.npy", phi)
+    return p, [], "R 0.28 r 0.1 centred"
+
+
+def case_torus_corner(out: Path, n=48):
+    x = _grid(n)
+    phi = sd_torus(_local(x, (0.0, 0.0, 0.0)), 0.28, 0.1)
+    np.save(p := out / "torus_corner.npy", phi)
+    return p, [], "R 0.28 r 0.1 on the corner"
+
+
+def _rounded_cubes(seed):
+    def make(rng):
+        half = rng.uniform(0.08, 0.1, 3)
+        return (lambda p, half=half: sd_round_box(p, half, 0.02)), float(np.linalg.norm(half))
+
+    def case(out: Path, n=48):
+        shapes = _place(np.random.default_rng(seed), make, 8)
+        np.save(p := out / f"cubes_s{seed}.npy", _union(shapes, n))
+        return p, [], f"8 rounded boxes, {_crossing(shapes)} near faces"
+    return case
+
+
+def _cylinders(seed, flat):
+    sd = sd_cylinder if flat else sd_capsule
+
+    def make(rng):
+        length, r = rng.uniform(0.36, 0.44), 0.06
+        return (lambda p: sd(p, length, r)), float(np.hypot(length / 2, r))
+
+    def case(out: Path, n=48):
+        shapes = _place(np.random.default_rng(seed), make, 6)
+        name = f"{'flatcyl' if flat else 'capsules'}_s{seed}"
+        np.save(p := out / f"{name}.npy", _union(shapes, n))
+        return p, [], f"6 {'flat-ended cylinders' if flat else 'capsules'}, {_crossing(shapes)} near faces"
+    return case
+
+
+def case_labels(out: Path, n=64, seed=0):
+    rng = np.random.default_rng(seed)
+
+    def make(rng):
+        r = rng.uniform(0.08, 0.12)
+        return (lambda p: sd_sphere(p, r)), r
+
+    shapes = _place(rng, make, 12)
+    x = _grid(n)
+    labels = np.zeros((n, n, n), dtype=np.int32)
+    for k, (sd, _, c, _) in enumerate(shapes, start=1):
+        labels[sd(_local(x, c)) < 0] = k
+    np.save(p := out / "labels.npy", labels)
+    return p, [], f"64^3 labels 1..12, {_crossing(shapes)} near faces"
+
+
+def case_ellipsoid_box(out: Path):
+    p = out / "ellipsoid_box.npz"
+    cmd = [str(JAXMESH), "generate", str(p), "--kind", "ellipsoid", "--n", "15",
+           "--volume-fraction", "0.25", "--box", "1.5", "1", "0.8", "--grid", "48", "--seed", "5"]
+    subprocess.run(cmd, check=True, capture_output=True, text=True, timeout=TIMEOUT)
+    return p, [], "generate ellipsoid box 1.5x1x0.8 seed 5"
+
+
+def case_big_sphere(out: Path, n=48):
+    np.save(p := out / "big_sphere.npy", sd_sphere(_local(_grid(n), (0.5, 0.5, 0.5)), 0.45))
+    return p, [], "r 0.45 centred, gap 0.1 to images"
+
+
+def case_sphere_corner(out: Path, n=48):
+    np.save(p := out / "sphere_corner.npy", sd_sphere(_local(_grid(n), (0.0, 0.0, 0.0)), 0.3))
+    return p, [], "r 0.3 on the corner"
+
+
+def case_sphere_edge(out: Path, n=48):
+    np.save(p := out / "sphere_edge.npy", sd_sphere(_local(_grid(n), (0.5, 0.0, 0.0)), 0.3))
+    return p, [], "r 0.3 on an edge midpoint"
+
+
+CASES = {
+    "torus": case_torus,
+    "torus_corner": case_torus_corner,
+    "cubes_s0": _rounded_cubes(0),
+    "cubes_s1": _rounded_cubes(1),
+    "capsules_s0": _cylinders(0, flat=False),
+    "capsules_s1": _cylinders(1, flat=False),
+    "flatcyl_s0": _cylinders(0, flat=True),
+    "flatcyl_s1": _cylinders(1, flat=True),
+    "labels": case_labels,
+    "ellipsoid_box": case_ellipsoid_box,
+    "big_sphere": case_big_sphere,
+    "sphere_corner": case_sphere_corner,
+    "sphere_edge": case_sphere_edge,
+}
+
+
+def _last_line(text: str) -> str:
+    lines = [ln for ln in text.strip().splitlines() if ln.strip()]
+    return lines[-1].strip() if lines else "(no stderr)"
+
+
+def run_case(name: str, out: Path, build_only: bool) -> str:
+    try:
+        path, extra, note = CASES[name](out)
+    except Exception as err:  # noqa: BLE001 - a sweep reports and goes on
+        return f"{name:14s} build failed: {type(err).__name__}: {err}"
+    if build_only:
+        return f"{name:14s} built {path.name} ({note})"
+    vtu, rep = out / f"{name}.vtu", out / f"{name}.json"
+    for f in (vtu, rep):
+        f.unlink(missing_ok=True)
+    cmd = [str(JAXMESH), "mesh", str(path), "-o", str(vtu), "--report", str(rep), *extra]
+    start = time.perf_counter()
+    try:
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=TIMEOUT)
+        rc, stdout, stderr = res.returncode, res.stdout, res.stderr
+    except subprocess.TimeoutExpired as err:
+        rc, stdout, stderr = "timeout", err.stdout or "", f"timed out after {TIMEOUT} s"
+        stdout = stdout.decode() if isinstance(stdout, bytes) else stdout
+    secs = time.perf_counter() - start
+    (out / f"{name}.mesh.log").write_text(f"$ {' '.join(cmd)}\n{stdout}\n--- stderr ---\n{stderr}")
+    head = f"{name:14s} rc {rc!s:>3} {secs:6.1f} s"
+    if rc != 0 or not rep.exists():
+        return f"{head}  FAILED: {_last_line(stderr)}  [{note}]"
+    r = json.loads(rep.read_text())
+    q, ok = r["quality"], r["metadata"]["validation"]["ok"]
+    return (f"{head} {q['n_cells']:8d} tets  q_mean {q['q_mean']:.3f}  "
+            f"{100 * q['frac_below']:6.3f} % <0.3  min dihedral {q['min_dihedral_deg']:5.1f} deg  "
+            f"{'valid' if ok else 'INVALID'}  [{note}]")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("out_dir", nargs="?", default="/tmp/jaxmesh_shapes")
+    parser.add_argument("--only", nargs="+", choices=sorted(CASES), help="run these cases only")
+    parser.add_argument("--build-only", action="store_true", help="write the inputs, mesh nothing")
+    args = parser.parse_args()
+    out = Path(args.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    git = ["git", "-C", str(HERE)]
+    commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run([*git, "diff", "--quiet", "HEAD", "--", "jaxmesh"]).returncode != 0
+    now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M:%S")
+    print(f"# {now} UTC, {len(os.sched_getaffinity(0))} cores, commit {commit}{'+modified' if dirty else ''}, "
+          f"out {out}", flush=True)
+    for name in args.only or CASES:
+        print(run_case(name, out, args.build_only), flush=True)
+
+
+if __name__ == "__main__":
+    main()
