@@ -9,9 +9,7 @@ registered by its exact coordinates, and periodic copies are built as exact tran
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
@@ -354,14 +352,6 @@ def _periodic_pairs(reg: _Registry, box) -> dict[int, np.ndarray]:
     return out
 
 
-def _cpu_count() -> int:
-    """CPUs this process may run on (at most 8 threads for the per-inclusion surfaces)."""
-    try:
-        return min(len(os.sched_getaffinity(0)), 8)
-    except AttributeError:  # not Linux
-        return min(os.cpu_count() or 1, 8)
-
-
 def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig()) -> SurfaceMesh:
     """Closed, periodic surface mesh of a 3D RVE: inclusion interfaces cut by the box plus box faces.
 
@@ -391,21 +381,15 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig())
     t0 = time.perf_counter()
     reg = _Registry()
     tris, sides, kinds = [], [], []
-    # independent per inclusion; threads overlap the compiled calls and the GIL-free NumPy work
-    # (1.6x on 2 cores, the same meshes); results are merged in inclusion order
-    pool = ThreadPoolExecutor(config.workers or _cpu_count())
-    try:
-        meshed = pool.map(lambda inc: mesh_inclusion(inc, h_fn, box, config), microstructure.inclusions)
-        for inc, out in zip(microstructure.inclusions, meshed):
-            t = reg.add(out["points"], inc.id)[out["triangles"]]
-            # pieces cut at a box edge can share a point: (a, a, b) has zero area, and dropping it
-            # leaves the edge a-b in its two neighbours
-            t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])]
-            tris.append(t)
-            sides.append(np.tile([inc.id, 0], (len(t), 1)))
-            kinds.append(np.full(len(t), INTERFACE))
-    finally:  # on an error, the inclusions not started yet are dropped
-        pool.shutdown(cancel_futures=True)
+    for inc in microstructure.inclusions:
+        out = mesh_inclusion(inc, h_fn, box, config)
+        t = reg.add(out["points"], inc.id)[out["triangles"]]
+        # pieces cut at a box edge can share a point: (a, a, b) has zero area, and dropping it
+        # leaves the edge a-b in its two neighbours
+        t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])]
+        tris.append(t)
+        sides.append(np.tile([inc.id, 0], (len(t), 1)))
+        kinds.append(np.full(len(t), INTERFACE))
     t1 = time.perf_counter()
     iface = np.vstack(tris) if tris else np.zeros((0, 3), np.int64)
     P = reg.array()

@@ -61,8 +61,6 @@ class SurfaceConfig:
         face_min_angle: box-face triangles below this angle (degrees) get a circumcentre inserted
             (Delaunay refinement) when it does not encroach on a trace or box edge.
         check_intersections: run the triangle-triangle self-intersection check at the end.
-        workers: threads meshing inclusions at once (None: the CPUs available, at most 8; 1: one
-            at a time). The result does not depend on it.
     """
 
     mc_step: float = 1.0
@@ -79,12 +77,8 @@ class SurfaceConfig:
     trace_grading: float = 0.3
     face_min_angle: float = 25.0
     check_intersections: bool = True
-    workers: int | None = None
 
     def __post_init__(self):
-        if self.workers is not None and not (isinstance(self.workers, int) and not isinstance(self.workers, bool)
-                                             and 1 <= self.workers <= 256):
-            raise ValueError(f"SurfaceConfig.workers: expected None or an integer in [1, 256], got {self.workers!r}.")
         if not (isinstance(self.collapse_ratio, (int, float)) and 0 <= self.collapse_ratio < 0.5 * self.refine_ratio):
             raise ValueError(f"SurfaceConfig.collapse_ratio: expected a number in [0, refine_ratio / 2), got "
                              f"{self.collapse_ratio!r} (a collapse must not make an edge that refinement splits).")

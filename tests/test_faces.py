@@ -5,9 +5,7 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from jaxmesh._errors import MeshingError
 from jaxmesh._faces import mesh_surfaces
-from jaxmesh._surface import SurfaceConfig
 from jaxmesh._intersect import intersecting_pairs
 from jaxmesh._quality import cell_quality, min_angles
 from jaxmesh._surface_mesh import BOX_FACE, INTERFACE, OUTSIDE
@@ -117,36 +115,6 @@ def test_bad_input():
         mesh_surfaces(ms, 0.05)
     with pytest.raises(ValueError, match="Microstructure"):
         mesh_surfaces(object(), 0.05)
-
-
-def test_threads_give_the_same_surface(rve):
-    """Inclusions are meshed by several threads (SurfaceConfig.workers); one thread gives the same mesh."""
-    ms, threaded = rve
-    single = mesh_surfaces(ms, R / 4, config=SurfaceConfig(workers=1))
-    for name in ("points", "triangles", "sides", "kind", "node_inclusion"):
-        np.testing.assert_array_equal(getattr(single, name), getattr(threaded, name), err_msg=name)
-    for a in range(3):
-        np.testing.assert_array_equal(single.periodic_pairs[a], threaded.periodic_pairs[a])
-
-
-def test_threaded_error_names_the_first_failing_inclusion(monkeypatch):
-    """With threads, the error raised is that of the first failing inclusion in id order, even when a
-    later one fails sooner, as without threads."""
-    import time
-
-    import jaxmesh._faces as faces
-
-    def fake(inc, h_fn, box, config):
-        if inc.id >= 2:
-            time.sleep(0.3 if inc.id == 2 else 0.0)
-            raise MeshingError("surfaces", "made to fail", inc.id)
-        return {"points": np.zeros((0, 3)), "triangles": np.zeros((0, 3), np.int64)}
-
-    monkeypatch.setattr(faces, "mesh_inclusion", fake)
-    ms = Microstructure.from_functions([sphere_sdf(c, R) for c in CENTRES], (1.0, 1.0, 1.0), (32, 32, 32))
-    with pytest.raises(MeshingError) as err:
-        mesh_surfaces(ms, R / 4, config=SurfaceConfig(workers=3))
-    assert err.value.inclusion == 2
 
 
 @pytest.mark.slow
