@@ -160,6 +160,40 @@ def test_box_surface_is_closed_and_periodic():
         assert len(s.periodic_pairs[a]) == np.sum(np.abs(s.points[:, a]) < 1e-12)
 
 
+def _fills_the_box(points, cells):
+    """Positive tets whose volumes sum to the unit box's and whose unshared faces lie on its planes."""
+    vol = signed_volumes(points, cells)
+    faces = np.sort(cells[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
+    uniq, count = np.unique(faces, axis=0, return_counts=True)
+    outer = points[uniq[count == 1]]
+    on_plane = np.any(np.all((outer == 0.0) | (outer == 1.0), axis=1), axis=1)
+    return vol.min() > 0 and abs(vol.sum() - 1.0) < 1e-9 and on_plane.all() and set(count) <= {1, 2}
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_delaunay_fills_the_box_with_or_without_the_far_corners(dense):
+    """delaunay_tets first adds far box corners (fast: the box faces are then off the hull) and keeps
+    that Delaunay only when it fills the box; sparse box faces make it fall back to plain Qhull."""
+    from jaxmesh._volume import _enclosed_delaunay, delaunay_tets
+
+    rng = np.random.default_rng(4)
+    if dense:  # box faces as fine as the interior: the far-corner Delaunay is kept
+        g = np.linspace(0.0, 1.0, 11)
+        grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+        on_edge = np.sum((grid == 0.0) | (grid == 1.0), axis=1) >= 2
+        jitter = rng.uniform(-0.03, 0.03, grid.shape)
+        jitter[(grid == 0.0) | (grid == 1.0)] = 0.0  # face nodes move in their plane, edge nodes stay
+        points = np.concatenate([grid[on_edge], (grid + jitter)[~on_edge]])
+    else:  # the 8 corners only, interior points hugging x = 0: some far-corner tets reach into the box
+        corners = np.stack(np.meshgrid(*[[0.0, 1.0]] * 3, indexing="ij"), -1).reshape(-1, 3)
+        inner = rng.random((60, 3)) * [0.02, 1.0, 1.0] + [0.001, 0.0, 0.0]
+        points = np.concatenate([corners, inner])
+    kept, _ = _enclosed_delaunay(points, np.ones(3), VolumeConfig().qhull_options)
+    assert (kept is not None) == dense
+    cells, info = delaunay_tets(points, np.ones(3))
+    assert _fills_the_box(points, cells) and info["flat_interior"] == 0
+
+
 def test_interior_nodes_clearance_and_box():
     s = rve_surface()
     pts = interior_nodes(s, _h)
