@@ -175,10 +175,10 @@ def delaunay_tets(points: np.ndarray, box, config: VolumeConfig = VolumeConfig()
 def _enclosed_delaunay(points: np.ndarray, box: np.ndarray, options: str) -> tuple[np.ndarray | None, int]:
     """Delaunay tets of points in the box, computed with the corners of a 3x larger box added.
 
-    Qhull slows down when thousands of nodes lie on the hull's planar faces (box faces: 11.3 s
-    against 4.9 s on a 63k-node RVE). With the far corners the box faces are inside the hull, and
-    the tets without a far corner are kept if they fill the box exactly: volumes summing to the
-    box's and boundary faces on the box planes. Returns (None, 0) otherwise (then plain Qhull).
+    Qhull slows down when thousands of nodes lie on the hull's planar faces (the box faces); with
+    the far corners the box faces are inside the hull (about half the Delaunay time on the Table-1
+    RVEs). The tets without a far corner are kept if they fill the box exactly: volumes summing to
+    the box's and boundary faces on the box planes. Returns (None, 0) otherwise (then plain Qhull).
     """
     n = len(points)
     far = np.stack(np.meshgrid(*[[-1.0, 2.0]] * 3, indexing="ij"), -1).reshape(-1, 3) * box
