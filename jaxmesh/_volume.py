@@ -153,16 +153,24 @@ def delaunay_tets(points: np.ndarray, box, config: VolumeConfig = VolumeConfig()
     """
     box = np.asarray(box, dtype=float)
     cells, coplanar = _enclosed_delaunay(points, box, config.qhull_options)
-    if cells is None:
-        tri = Delaunay(points, qhull_options=config.qhull_options)
-        cells, coplanar = np.asarray(tri.simplices, dtype=np.int64), len(tri.coplanar)
+    if cells is not None:
+        cells, info = _positive_drop_flat(points, cells, box, config.flat_eps, coplanar)
+        if not info["flat_interior"]:  # the far corners can make cospherical nodes pick flat tets
+            return cells, info
+    tri = Delaunay(points, qhull_options=config.qhull_options)
+    return _positive_drop_flat(points, np.asarray(tri.simplices, dtype=np.int64), box, config.flat_eps,
+                               len(tri.coplanar))
+
+
+def _positive_drop_flat(points, cells, box, flat_eps: float, coplanar: int) -> tuple[np.ndarray, dict]:
+    """`delaunay_tets`'s cells made positive, flat ones on a box plane dropped, and its info."""
     vol = signed_volumes(points, cells)
     neg = vol < 0
     cells[neg, :2] = cells[neg, 1::-1]
     p = points[cells]
     lmax = np.max([np.linalg.norm(p[:, i] - p[:, j], axis=1) for i, j in
                    ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))], axis=0)
-    flat = np.abs(vol) <= config.flat_eps * lmax**3
+    flat = np.abs(vol) <= flat_eps * lmax**3
     on_plane = np.zeros(len(cells), bool)
     for a in range(3):
         for s in (0.0, 1.0):
