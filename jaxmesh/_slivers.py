@@ -60,13 +60,16 @@ def tet_quality(p: np.ndarray) -> np.ndarray:
     return _quality_cm(np.ascontiguousarray(np.moveaxis(np.asarray(p, dtype=float), 0, -1)))
 
 
-def _quality_cm(x: np.ndarray) -> np.ndarray:
-    """`tet_quality` of coordinate-major tets x (4, 3, m)."""
+def _quality_cm(x: np.ndarray, opposite_area2: np.ndarray | None = None) -> np.ndarray:
+    """`tet_quality` of coordinate-major tets x (4, 3, m) (or a sequence of four (3, m) vertex arrays).
+    opposite_area2: optional (m,) twice the area of the face x[1] x[2] x[3], when known."""
     a, b, c = x[1] - x[0], x[2] - x[0], x[3] - x[0]
     bc, ca, ab = _cross_rows(b, c), _cross_rows(c, a), _cross_rows(a, b)
     six_v = _dot_rows(a, bc)
-    opposite = _cross_rows(x[2] - x[1], x[3] - x[1])
-    area2 = sum(np.sqrt(_dot_rows(v, v)) for v in (bc, ca, ab, opposite))  # 2 x area
+    if opposite_area2 is None:
+        opposite = _cross_rows(x[2] - x[1], x[3] - x[1])
+        opposite_area2 = np.sqrt(_dot_rows(opposite, opposite))
+    area2 = opposite_area2 + sum(np.sqrt(_dot_rows(v, v)) for v in (bc, ca, ab))  # 2 x area
     num = _dot_rows(a, a) * bc + _dot_rows(b, b) * ca + _dot_rows(c, c) * ab
     # r_in = 6V / (2 A2), r_circ = |num| / (2 * 6V)  =>  3 r_in / r_circ = 6 (6V)^2 / (A2 |num|)
     den = np.maximum(area2 * np.sqrt(_dot_rows(num, num)), np.finfo(float).tiny)
@@ -178,16 +181,10 @@ def _star_eval(fixed, opposite, owner, starts, x):
 
     fixed (3, 3, r): per star tet the other three vertices, coordinate-major, positive after the
     moving vertex (`_FIXED_AFTER`); opposite (r,): twice their triangle's area, which the move
-    keeps; owner (r,) sorted, each star's rows beginning at starts (k,). `_quality_cm` with the
-    moving vertex first, without copying the tets per candidate.
+    keeps; owner (r,) sorted, each star's rows beginning at starts (k,). The moving vertex goes
+    first, so the tets are not copied per candidate.
     """
-    xr = x[owner].T
-    a, b, c = fixed[0] - xr, fixed[1] - xr, fixed[2] - xr
-    bc, ca, ab = _cross_rows(b, c), _cross_rows(c, a), _cross_rows(a, b)
-    six_v = _dot_rows(a, bc)
-    area2 = opposite + sum(np.sqrt(_dot_rows(v, v)) for v in (bc, ca, ab))
-    num = _dot_rows(a, a) * bc + _dot_rows(b, b) * ca + _dot_rows(c, c) * ab
-    q = 6.0 * six_v * np.abs(six_v) / np.maximum(area2 * np.sqrt(_dot_rows(num, num)), np.finfo(float).tiny)
+    q = _quality_cm((x[owner].T, fixed[0], fixed[1], fixed[2]), opposite)
     qmin = np.minimum.reduceat(q, starts)  # ufunc.at is ~10x slower
     qmean = np.add.reduceat(q, starts) / np.diff(np.append(starts, len(q)))
     return qmin, qmean, q
@@ -207,7 +204,8 @@ def _smooth_class(points, cells, by, off, neighbours, nb_off, verts) -> int:
     x0 = points[verts].copy()
     p0 = points[cells[rows]]
     fixed = np.ascontiguousarray(np.transpose(p0[np.arange(len(rows))[:, None], _FIXED_AFTER[local]], (1, 2, 0)))
-    opposite = _norm(_cross((fixed[1] - fixed[0]).T, (fixed[2] - fixed[0]).T))
+    face = _cross_rows(fixed[1] - fixed[0], fixed[2] - fixed[0])
+    opposite = np.sqrt(_dot_rows(face, face))
     starts = np.flatnonzero(np.diff(owner, prepend=-1))
     best_min, best_mean, q = _star_eval(fixed, opposite, owner, starts, x0)
     base_mean = best_mean

@@ -20,7 +20,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, cKDTree
 
 from ._errors import MeshingError
-from ._mesh import Mesh, facet_table
+from ._mesh import Mesh, classify_facets, facet_table
 from ._quality import signed_volumes
 from ._face_flips import delaunay_box_faces, delaunay_interfaces
 from ._surface_mesh import OUTSIDE, SurfaceMesh
@@ -195,13 +195,8 @@ def _enclosed_delaunay(points: np.ndarray, box: np.ndarray, options: str) -> tup
     cells = cells[(cells < n).all(axis=1)]
     if abs(np.abs(signed_volumes(points, cells)).sum() - np.prod(box)) > 1e-9 * np.prod(box):
         return None, 0
-    faces = cells[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3)
-    _, first, count = np.unique(triangle_keys(faces, n), return_index=True, return_counts=True)
-    p = points[faces[first[count == 1]]]  # (b, 3, 3) boundary faces
-    on_box = np.zeros(len(p), bool)
-    for a in range(3):
-        for side in (0.0, box[a]):
-            on_box |= np.all(np.abs(p[:, :, a] - side) <= 1e-9 * box[a], axis=1)
+    table = facet_table(cells, n)
+    on_box = classify_facets(points, table.facets[table.counts == 1], box) >= 0
     return (cells, len(tri.coplanar)) if on_box.all() else (None, 0)
 
 

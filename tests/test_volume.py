@@ -162,12 +162,12 @@ def test_box_surface_is_closed_and_periodic():
 
 def _fills_the_box(points, cells):
     """Positive tets whose volumes sum to the unit box's and whose unshared faces lie on its planes."""
+    from jaxmesh._mesh import classify_facets, facet_table
+
     vol = signed_volumes(points, cells)
-    faces = np.sort(cells[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
-    uniq, count = np.unique(faces, axis=0, return_counts=True)
-    outer = points[uniq[count == 1]]
-    on_plane = np.any(np.all((outer == 0.0) | (outer == 1.0), axis=1), axis=1)
-    return vol.min() > 0 and abs(vol.sum() - 1.0) < 1e-9 and on_plane.all() and set(count) <= {1, 2}
+    table = facet_table(cells, len(points))
+    on_plane = classify_facets(points, table.facets[table.counts == 1], np.ones(3)) >= 0
+    return vol.min() > 0 and abs(vol.sum() - 1.0) < 1e-9 and on_plane.all() and set(table.counts) <= {1, 2}
 
 
 @pytest.mark.parametrize("dense", [True, False])
