@@ -209,17 +209,23 @@ def levelset_window_field(values, own, nearest, cid: int, spacing, full) -> np.n
     """Own level set of component cid on its window, rebuilt from the global field.
 
     The input values are kept inside the component, at its outside face neighbours, and at the
-    non-negative nodes closer to it than to any other component, so the zero set near the
-    inclusion is the input's; elsewhere (other inclusions included) the distance to its surface,
-    so the field is positive on every other inclusion and |grad| ~ 1.
+    non-negative nodes closer to it than to any other component where they agree with the distance
+    to its surface (within half a step, that estimate's error), so the zero set near the inclusion
+    is the input's; elsewhere (other inclusions included) that distance, so the field is positive
+    on every other inclusion and |grad| ~ 1. Where the input is not a distance away from its zero
+    set (a thresholded random field, scan intensities), kept values would jump against the
+    distances and the cubic spline would ring below zero beside the jump.
     """
     rim = ndimage.binary_dilation(own) & ~own  # outside face neighbours: non-negative by construction
-    keep = own | rim | ((values >= 0) & (nearest == cid))
+    away = ~(own | rim)
     out = values.copy()
-    if (~keep).any():
+    if away.any():
         tree = surface_tree(np.where(own | rim, values, 1.0), own, spacing, full)
-        coords = np.stack(np.nonzero(~keep), axis=-1) * np.asarray(spacing)
-        out[~keep] = outside_distance(tree, coords, edt(own, spacing, full)[~keep], spacing)
+        coords = np.stack(np.nonzero(away), axis=-1) * np.asarray(spacing)
+        dist = outside_distance(tree, coords, edt(own, spacing, full)[away], spacing)
+        v = values[away]
+        agree = (v >= 0) & (nearest[away] == cid) & (np.abs(v - dist) <= 0.5 * min(spacing))
+        out[away] = np.where(agree, v, dist)
     return out
 
 
