@@ -30,6 +30,7 @@ from ._surface_ops import (
     refine,
     snap_candidates,
     straddling,
+    touching_plane_nodes,
     triangle_cells,
 )
 from ._truss import TrussConfig, make_constraints, phi_and_grad, relax
@@ -376,6 +377,25 @@ def cut_by_box(points, tris, on_plane, phi_fn, box, h_fn, config: SurfaceConfig)
     return points, tris, on_plane
 
 
+def release_touching(points, tris, on_plane, phi_fn, box, newton_steps: int):
+    """Move plane nodes that touch their plane without a crossing (`touching_plane_nodes`) off it,
+    to their neighbours' mean projected onto phi = 0 (other plane coordinates kept).
+    Returns (points, on_plane)."""
+    touch = touching_plane_nodes(points, tris, on_plane, box)
+    nodes = np.flatnonzero(touch.any(axis=1))
+    if not nodes.size:
+        return points, on_plane
+    points, on_plane = points.copy(), on_plane.copy()
+    on_plane[touch] = False
+    edges, _ = half_edges(tris, len(points))
+    total, degree = np.zeros_like(points), np.bincount(edges.ravel(), minlength=len(points))
+    np.add.at(total, edges[:, 0], points[edges[:, 1]])
+    np.add.at(total, edges[:, 1], points[edges[:, 0]])
+    target = np.where(on_plane[nodes], points[nodes], total[nodes] / degree[nodes, None])
+    points[nodes], _, _ = project(phi_fn, target, on_plane[nodes], newton_steps)
+    return points, on_plane
+
+
 def _clear_of_others(points: np.ndarray, cand: np.ndarray, q: np.ndarray, radius: float) -> np.ndarray:
     """(k,) bool: snapped positions q of vertices cand that stay radius away from every other vertex
     and from each other (two vertices snapped onto one box-edge point would merge into one node)."""
@@ -494,6 +514,7 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
         for _ in range(3):
             pts, tris, on_plane = cut_by_box(pts, tris, on_plane, phi_fn, box, h_fn, config)
             pts, tris, on_plane = improve(pts, tris, on_plane, phi_fn, h_fn, box, config, cut=True)
+            pts, on_plane = release_touching(pts, tris, on_plane, phi_fn, box, config.newton_steps)
             if not straddling(pts, tris, box).any():
                 break
         else:  # last resort: cut what still straddles without snapping

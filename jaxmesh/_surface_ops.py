@@ -151,6 +151,27 @@ def plane_flags(points: np.ndarray, box) -> np.ndarray:
     return points == np.round(points / L) * L
 
 
+def touching_plane_nodes(points: np.ndarray, tris: np.ndarray, on_plane: np.ndarray, box) -> np.ndarray:
+    """(n, 3) bool: node on the box plane k L_a that has no neighbour strictly on one of its sides.
+
+    Such a node touches the plane without the surface crossing it (a cap collapsed away, a bump
+    snapped onto it): after wrapping it exists on one face only, without its periodic translate.
+    """
+    L = np.asarray(box, dtype=float)
+    edges, _ = half_edges(tris, len(points))
+    u, v = np.concatenate([edges[:, 0], edges[:, 1]]), np.concatenate([edges[:, 1], edges[:, 0]])
+    out = np.zeros(on_plane.shape, bool)
+    for a in range(3):
+        plane = np.round(points[:, a] / L[a]) * L[a]
+        offset = points[v, a] - plane[u]
+        above = np.zeros(len(points), bool)
+        below = np.zeros(len(points), bool)
+        above[u[offset > 0]] = True
+        below[u[offset < 0]] = True
+        out[:, a] = on_plane[:, a] & ~(above & below)
+    return out
+
+
 def snap_candidates(points, tris, on_plane, axis: int, value: float, tol: float) -> np.ndarray:
     """Vertices within tol of the plane x_axis = value to snap onto it, chosen greedily (closest
     first) so that no triangle gets all three vertices on the plane."""

@@ -9,8 +9,9 @@ import pytest
 from jaxmesh._intersect import intersecting_pairs
 from jaxmesh._quality import cell_quality, min_angles
 from jaxmesh._surface import (SurfaceConfig, as_size_fn, enclosed_volume, extract, folded, mesh_inclusion, project,
-                              unfold)
-from jaxmesh._surface_ops import collapse_edges, cut_plane, flip_edges, half_edges, refine, straddling
+                              release_touching, unfold)
+from jaxmesh._surface_ops import (collapse_edges, cut_plane, flip_edges, half_edges, refine, straddling,
+                                  touching_plane_nodes)
 from jaxmesh.geometry._microstructure import Microstructure
 from jaxmesh.geometry._shapes import sphere_sdf
 
@@ -79,6 +80,25 @@ def test_cut_plane_splits_without_straddling(sphere):
     assert len(new) > 0 and (q[new, 0] == 0.55).all() and flags[new, 0].all()
     assert _closed(t2) and not straddling(q, t2, box).any()
     assert enclosed_volume(q, t2) == pytest.approx(enclosed_volume(p, t), rel=1e-12)
+
+
+def test_a_node_touching_a_plane_without_a_crossing_is_moved_off_it(sphere):
+    # the cut's trace nodes have neighbours on both sides; a node laid on the plane x = 0.7 at the
+    # sphere's pole has all its neighbours below it: its wrapped copy would have no translate
+    phi, p, t = sphere
+    q, t2, flags, _ = cut_plane(p, t, np.zeros(p.shape, bool), 0, 0.55)
+    assert flags[:, 0].sum() > 10 and not touching_plane_nodes(q, t2, flags, (0.55, 1.0, 1.0)).any()
+    q, t2, flags = p.copy(), t, np.zeros(p.shape, bool)
+    pole = int(np.argmax(q[:, 0]))
+    q[pole] = (0.7, 0.5, 0.5)
+    flags[pole, 0] = True
+    touch = touching_plane_nodes(q, t2, flags, (0.7, 1.0, 1.0))
+    assert np.flatnonzero(touch.any(axis=1)).tolist() == [pole] and touch[pole].tolist() == [True, False, False]
+    r, flags2 = release_touching(q, t2, flags, phi, (0.7, 1.0, 1.0), 8)
+    assert not flags2[pole].any() and r[pole, 0] < 0.7  # the surface is tangent there: just off it
+    assert abs(np.linalg.norm(r[pole] - 0.5) - 0.2) < 1e-10
+    rest = np.arange(len(q)) != pole
+    assert np.array_equal(r[rest], q[rest]) and np.array_equal(flags2[rest], flags[rest])
 
 
 def test_collapse_removes_short_edges_and_keeps_traces(sphere):
