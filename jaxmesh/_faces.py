@@ -314,7 +314,9 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
     uv, tri = _refine_face(uv, tri, seg, nf, h2, box2, config.face_min_angle)
     lat = uv[nf:]
     if missing_segments(tri, seg, len(uv)).any():
-        raise MeshingError("faces", f"face {axis}: constrained segments missing from the face triangulation")
+        raise MeshingError("faces", f"face {axis}: constrained segments missing from the face triangulation (interface "
+                           "traces cross: an inclusion surface folds where the mesh size exceeds its features; "
+                           "a smaller iis / h_max, or a smoother field, resolves them)")
     ncomp, comp = flood_fill(tri, seg, len(uv))
     cen = uv[tri].mean(axis=1)
     c3 = np.zeros((len(tri), 3))

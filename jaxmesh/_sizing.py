@@ -34,6 +34,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy import ndimage
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._periodic import minimum_image, wrap
@@ -473,7 +474,7 @@ class SizeSources(NamedTuple):
 
     points: Array  # (s, d) interface source points
     ids: np.ndarray  # (s,) inclusion ids
-    dn2: Array  # (s,) DN2 at the sources (linear interpolation of the grid)
+    dn2: Array  # (s,) DN2 at the sources (linear interpolation of the grid), or the self_gaps when narrower
     kappa: Array  # (s,) max |principal curvature| of each source's own inclusion
     box_gap: np.ndarray | None = None  # (s,) box_gaps (None: no such term)
 
@@ -525,19 +526,53 @@ def box_gaps(points: np.ndarray, normals: np.ndarray, box, max_angle: float = 15
     return gap
 
 
+def self_gaps(points: np.ndarray, ids: np.ndarray, normals: np.ndarray, dn1: np.ndarray, nearest_id: np.ndarray,
+              box, periodic: bool = True, max_steps: int = 16) -> np.ndarray:
+    """Per surface point: the width of the matrix in front of it when the other side is the same
+    inclusion (a concave inclusion's own narrow gap: a neck between two lobes, a torus hole), inf
+    where the outward ray meets another inclusion first or nothing within max_steps grid steps.
+
+    DN2 measures the gap to the second nearest inclusion only; without this term a surface meshed
+    coarser than its own gap folds onto itself. Rays march from 1.5 steps out in half steps on the
+    linear interpolant of dn1 (the distance to the nearest inclusion).
+    """
+    pts = np.asarray(points, dtype=float)
+    gap = np.full(len(pts), np.inf)
+    if not len(pts):
+        return gap
+    spacing = np.asarray(box, dtype=float) / np.asarray(dn1.shape)
+    step = float(spacing.min())
+    ts = step * np.arange(1.5, max_steps + 0.25, 0.5)
+    mode = "grid-wrap" if periodic else "nearest"
+    for lo in range(0, len(pts), 1 << 15):  # chunks: (chunk, rays) samples stay small
+        sl = slice(lo, lo + (1 << 15))
+        x = pts[sl, None, :] + ts[None, :, None] * normals[sl, None, :]
+        coords = (x / spacing).reshape(-1, pts.shape[1]).T
+        inside = ndimage.map_coordinates(dn1, coords, order=1, mode=mode).reshape(x.shape[:2]) < 0
+        owner = ndimage.map_coordinates(nearest_id, coords, order=0, mode=mode).reshape(x.shape[:2])
+        hit = inside.any(axis=1)
+        first = np.argmax(inside, axis=1)
+        own = hit & (owner[np.arange(len(first)), first] == ids[sl])
+        gap[sl] = np.where(own, ts[first], np.inf)
+    return gap
+
+
 def size_sources(microstructure) -> SizeSources:
     """Sources, their DN2, box gaps and curvature (each inclusion's own phi_fn) for a Microstructure."""
     ms = microstructure
     points, ids = interface_sources(ms)
     # DN2 may be inf (a single inclusion): clamp to a length no periodic distance exceeds
     dn2_grid = np.clip(np.asarray(ms.dn2, dtype=float), 0.0, float(np.linalg.norm(ms.box)))
-    dn2 = interpolate_linear(jnp.asarray(dn2_grid), ms.box, points)
     kappa, pts = np.zeros(ids.size), np.asarray(points)
     for inc in ms.inclusions:
         sel = np.nonzero(ids == inc.id)[0]
         if sel.size:
             kappa[sel] = _curvature(inc.phi_fn, pts[sel])
-    box_gap = box_gaps(pts, _grid_normals(np.asarray(ms.dn1, dtype=float), ms.box, points), ms.box)
+    dn1_grid = np.asarray(ms.dn1, dtype=float)
+    normals = _grid_normals(dn1_grid, ms.box, points)
+    own_gap = self_gaps(pts, ids, normals, dn1_grid, np.asarray(ms.nearest_id), ms.box, ms.periodic)
+    dn2 = jnp.minimum(interpolate_linear(jnp.asarray(dn2_grid), ms.box, points), jnp.asarray(own_gap))
+    box_gap = box_gaps(pts, normals, ms.box)
     # finer sizes would be lost in the grid interpolation of h (and the grid resolves no thinner layer);
     # finite, so that jax.grad through box_gap / nb_el stays finite where the term is not the minimum
     step = min(b / n for b, n in zip(ms.box, ms.grid_shape))

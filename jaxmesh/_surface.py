@@ -426,6 +426,7 @@ def wrap_pieces(points, tris, on_plane, box):
     return p, inv.reshape(-1, 3).astype(np.int64), src
 
 
+_MC_ATTEMPTS = 3  # marching-cubes grids tried per inclusion, each up to 4x finer
 _MIN_CAP_DEPTH = 0.01  # fraction of h: shallower caps beyond a box plane are not meshed
 
 
@@ -494,14 +495,21 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
     centre = jnp.asarray(((lower + upper) / 2)[None])
     h0 = float(evaluate_size(h_fn, np.asarray(centre))[0])
     step = min(config.mc_step * h0, float(np.min(upper - lower)) / 4)
-    pts, tris = extract(phi_fn, lower, upper, step, box)
-    if len(tris) < 4:
-        raise MeshingError("surfaces", "marching cubes found no closed surface", inclusion.id)
-    edge_use = np.bincount(half_edges(tris, len(pts))[1].reshape(-1))
-    if (edge_use != 2).any():
-        raise MeshingError("surfaces", f"the marching-cubes surface is not closed ({int((edge_use != 2).sum())} "
-                           "edges not in two triangles)", inclusion.id)
-    pts, _, _ = project(phi_fn, pts, np.zeros(pts.shape, bool), config.newton_steps)
+    for attempt in range(_MC_ATTEMPTS):
+        raw, tris = extract(phi_fn, lower, upper, step, box)
+        if len(tris) < 4:
+            raise MeshingError("surfaces", "marching cubes found no closed surface", inclusion.id)
+        edge_use = np.bincount(half_edges(tris, len(raw))[1].reshape(-1))
+        if (edge_use != 2).any():
+            raise MeshingError("surfaces", f"the marching-cubes surface is not closed ({int((edge_use != 2).sum())} "
+                               "edges not in two triangles)", inclusion.id)
+        pts, _, _ = project(phi_fn, raw, np.zeros(raw.shape, bool), config.newton_steps)
+        # the centre's h can be far coarser than the surface's (a large irregular inclusion): a
+        # grid that misses its necks and bumps projects into folds; then sample at the surface's h
+        finer = max(config.mc_step * float(np.quantile(evaluate_size(h_fn, raw), 0.05)), step / 4)
+        if finer > step / 1.5 or not folded(pts, tris, phi_fn).any():
+            break
+        step = finer
     on_plane = np.zeros(pts.shape, bool)
     pts, tris, on_plane = improve(pts, tris, on_plane, phi_fn, h_fn, box, config, cut=False)
     L = np.asarray(box, float)

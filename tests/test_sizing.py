@@ -16,6 +16,7 @@ from jaxmesh._sizing import (
     interface_sources,
     limit_gradient,
     predicted_element_count,
+    self_gaps,
     size_function,
     size_sources,
     source_sizes,
@@ -155,6 +156,36 @@ def test_gap_narrowness_size(two_spheres):
     # away from the gap the curvature term (alpha R = 0.075) rules
     far = np.argmin(np.linalg.norm(pts - [0.15, 0.5, 0.5], axis=1))
     assert h0[far] == pytest.approx(0.5 * 0.15, rel=2e-2)
+
+
+def test_a_torus_hole_is_a_narrow_gap_of_its_own_inclusion(two_spheres):
+    """DN2 sees other inclusions only; the matrix across a torus hole (2 (R - r) = 0.16, ten grid
+    steps) is a gap of the torus itself, so nb_el elements span it there too."""
+    R, r, c = 0.2, 0.12, 0.5
+
+    def torus(p):
+        ring = jnp.sqrt((p[:, 0] - c) ** 2 + (p[:, 1] - c) ** 2) - R
+        return jnp.sqrt(ring**2 + (p[:, 2] - c) ** 2) - r
+
+    ms = Microstructure.from_functions([torus], (1.0, 1.0, 1.0), (64, 64, 64))
+    src = size_sources(ms)
+    pts = np.asarray(src.points)
+    axis_dist, height = np.linalg.norm(pts[:, :2] - c, axis=1), np.abs(pts[:, 2] - c)
+    inner = (axis_dist < R - r + 0.01) & (height < 0.02)
+    outer = (axis_dist > R + r - 0.01) & (height < 0.02)
+    assert inner.sum() > 20 and outer.sum() > 20
+    gap = np.asarray(src.dn2)
+    np.testing.assert_allclose(gap[inner], 2 * (R - r), atol=1.5 / 64)
+    assert (gap[outer] > 0.5).all()  # outwards: no other inclusion, no part of its own
+    field = size_function(ms, SizeParams(iis=0.1, nb_el=2.0, curv_alpha=5.0, grad=G), sources=src)  # no curvature
+    np.testing.assert_allclose(np.asarray(field.source_h0)[inner], (R - r), atol=1.0 / 64)
+    # convex inclusions have no gap of their own
+    ms2, src2 = two_spheres
+    p2 = np.asarray(src2.points)
+    centres = np.array([[0.3, 0.5, 0.5], [0.7, 0.5, 0.5]])[src2.ids - 1]  # the fixture's spheres
+    normals = (p2 - centres) / np.linalg.norm(p2 - centres, axis=1, keepdims=True)
+    assert np.isinf(self_gaps(p2, src2.ids, normals, np.asarray(ms2.dn1), np.asarray(ms2.nearest_id),
+                              ms2.box)).all()
 
 
 def test_gradient_limited_everywhere_incl_periodic_faces(two_spheres):
