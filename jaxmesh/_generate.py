@@ -632,9 +632,11 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
 
     The field has covariance exp(-r^2 / (2 l^2)) (l = correlation_length), made by filtering white
     noise with the square root of its spectral density in Fourier space, so it is exactly periodic.
-    Inclusions are {field < u}, u the quantile giving `volume_fraction` of the nodes. phi is the
-    field divided by its gradient norm at nodes next to the interface (a first-order distance),
-    extended elsewhere by the periodic Euclidean distance transform to those nodes.
+    Inclusions are {field < u}, u the quantile giving `volume_fraction` of the nodes, less the specks
+    the grid does not resolve (fewer than 8 nodes or under 1.5 steps thick: the mesher refuses them),
+    so the fraction comes out slightly below. phi is the field divided by its gradient norm at nodes
+    next to the interface (a first-order distance), extended elsewhere by the periodic Euclidean
+    distance transform to those nodes.
 
     Args:
         box: (d,) lengths; grid_shape: (d,) nodes per axis (node i at x = i L / n).
@@ -644,8 +646,6 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
     Returns:
         phi (grid_shape), float64, negative inside.
     """
-    from scipy import ndimage
-
     box = _check_box(box)
     shape = _check_grid(grid_shape, box.shape[0])
     h = box / np.asarray(shape)
@@ -663,7 +663,38 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
     field = np.fft.ifftn(np.fft.fftn(rng.normal(size=shape)) * np.exp(-0.25 * correlation_length**2 * k2)).real
     field = (field - field.mean()) / field.std()
     g = field - np.quantile(field, volume_fraction)
-    inside = g < 0
+    phi = _first_order_distance(g, g < 0, h)
+    specks = _unresolved_components(phi)  # the mesher refuses them (they are below the grid's resolution)
+    return _first_order_distance(g, (g < 0) & ~specks, h) if specks.any() else phi
+
+
+def _unresolved_components(phi: np.ndarray) -> np.ndarray:
+    """(grid) bool: nodes of the periodic components of phi < 0 that Microstructure.from_levelset
+    refuses as unresolved (fewer than _MIN_SAMPLES nodes or thinner than _MIN_THICKNESS steps)."""
+    from scipy import ndimage
+
+    from .geometry._components import _MIN_SAMPLES, _MIN_THICKNESS, chord_thickness, label_components
+
+    labels, n = label_components(phi < 0, True)
+    counts = np.bincount(labels.ravel(), minlength=n + 1)
+    bad = np.zeros(n + 1, bool)
+    for c, box in enumerate(ndimage.find_objects(labels), start=1):
+        if box is None:
+            continue
+        if counts[c] < _MIN_SAMPLES:
+            bad[c] = True
+            continue
+        window = np.ix_(*[np.arange(b.start - 1, b.stop + 1) % m for b, m in zip(box, phi.shape)])  # + 1 layer
+        bad[c] = chord_thickness(phi[window], labels[window] == c) < _MIN_THICKNESS
+    return bad[labels]
+
+
+def _first_order_distance(g: np.ndarray, inside: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Signed distance-like level set of `inside`: g over its gradient norm at the nodes next to the
+    interface, the periodic Euclidean distance transform to those nodes elsewhere."""
+    from scipy import ndimage
+
+    shape = g.shape
     grad = np.sqrt(sum(((np.roll(g, -1, k) - np.roll(g, 1, k)) / (2 * h[k])) ** 2 for k in range(len(shape))))
     band = np.zeros(shape, bool)
     for k in range(len(shape)):

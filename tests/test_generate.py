@@ -322,6 +322,22 @@ def test_excursion_set_periodic_fraction_and_distance_like():
     assert abs((phi3 < 0).mean() - 0.2) < 0.02
 
 
+@pytest.mark.parametrize("seed", [1, 2])
+def test_excursion_set_has_no_specks_the_mesher_refuses(seed):
+    """At l = 4 grid steps the raw excursion set holds specks of 1-6 nodes; the generator drops them,
+    so its output loads (every inclusion >= 8 nodes and >= 1.5 steps thick) at about the fraction."""
+    from jaxmesh.geometry._components import label_components
+    from jaxmesh.geometry._microstructure import Microstructure
+
+    shape = (48, 48, 48)
+    phi = excursion_set((1.0, 1.0, 1.0), shape, correlation_length=4 / 48, volume_fraction=0.1, seed=seed)
+    labels, n = label_components(phi < 0, True)
+    assert n >= 5 and np.bincount(labels.ravel())[1:].min() >= 8
+    assert abs((phi < 0).mean() - 0.1) < 0.01
+    ms = Microstructure.from_levelset(phi)
+    assert len(ms.inclusions) == n and min(inc.description["thickness"] for inc in ms.inclusions) >= 1.5
+
+
 @pytest.mark.parametrize(
     "kwargs",
     [dict(correlation_length=-1.0, volume_fraction=0.3), dict(correlation_length=0.1, volume_fraction=1.5),
