@@ -188,9 +188,11 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
     import jax.numpy as jnp
 
     from ._faces import mesh_surfaces
+    from ._surface import check_clear_of_images
     from ._volume import tetrahedralize
     from ._volume_recover import levelset_projector
 
+    check_clear_of_images(ms.inclusions, ms.box)  # before the size function: fail fast
     if config.h is not None:
         h_jax = float(config.h)
         h_np = lambda p: np.full(len(p), float(config.h))  # noqa: E731

@@ -185,6 +185,20 @@ def level_set_gradient(phi_fn, points: np.ndarray) -> np.ndarray:
     return project(phi_fn, points, np.ones((len(points), 3), bool), 0)[2]
 
 
+def check_clear_of_images(inclusions, box) -> None:
+    """Raise MeshingError for the first inclusion whose bounds span the box along an axis: it
+    reaches its own periodic image (a percolating network, an endless fibre), and each surface is
+    meshed as one closed piece in unwrapped coordinates."""
+    L = np.asarray(box, float)
+    for inc in inclusions:
+        span = (np.asarray(inc.upper, float) - np.asarray(inc.lower, float)) / L
+        if (span > 0.999).any():
+            a = int(np.argmax(span))
+            raise MeshingError("surfaces", f"the inclusion spans {span[a]:.0%} of the box along axis {a}: it reaches "
+                               "its own periodic image (a percolating network, an endless fibre); the conforming "
+                               "mesher needs every inclusion clear of its images", inc.id)
+
+
 def extract(phi_fn, lower, upper, step: float, box):
     """Marching cubes of one inclusion on a window around its (unwrapped) bounds.
 

@@ -143,3 +143,20 @@ def test_box_shaped_inclusion_from_a_sampled_level_set():
     inside = np.abs(signed_volumes(mesh.points, mesh.cells))[mesh.inclusion_id == 1].sum()
     # below the exact block: the interpolated level set rounds edges at grid scale, and chords cut them
     assert 0.95 * 0.4 * 0.3 * 0.36 < inside < 0.4 * 0.3 * 0.36
+
+
+def test_an_inclusion_reaching_its_own_image_is_refused_before_the_size_function():
+    """An endless fibre along x (a percolating inclusion) has no closed surface in one periodic copy:
+    a clear error naming it, raised before any stage runs."""
+    from jaxmesh._errors import MeshingError
+
+    x = np.arange(24) / 24
+    _, y, z = np.meshgrid(x, x, x, indexing="ij")
+    fibre = np.hypot(y - 0.5, z - 0.5) - 0.2
+    ball = np.sqrt((x[:, None, None] - 0.5) ** 2 + (y - 0.1) ** 2 + (z - 0.1) ** 2) - 0.08
+    ms = Microstructure.from_levelset(np.minimum(fibre, ball))
+    stages = []
+    with pytest.raises(MeshingError, match="own periodic image") as err:
+        mesh_rve(ms, MeshConfig(iis=0.1), progress=stages.append)
+    assert err.value.inclusion == next(i.id for i in ms.inclusions if i.upper[0] - i.lower[0] > 0.99)
+    assert any("] input" in s for s in stages) and not any("] size" in s for s in stages)
