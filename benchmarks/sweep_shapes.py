@@ -1,7 +1,8 @@
 """Robustness sweep (not a test): varied shapes meshed with the CLI defaults.
 
 Builds each input in OUT_DIR (tori, rounded cubes, finite cylinders, a labelled image, a
-non-cubic box, a sphere near its images, spheres on a box corner / edge), runs `jaxmesh mesh`
+non-cubic box, a sphere near its images, spheres on a box corner / edge, Gaussian excursion
+sets from `jaxmesh generate --kind grf`), runs `jaxmesh mesh`
 on it and prints one line per case.
     .venv/bin/python benchmarks/sweep_shapes.py [OUT_DIR] [--only NAME ...] [--build-only]
 """
@@ -23,7 +24,7 @@ from jaxmesh._periodic import minimum_image
 
 HERE = Path(__file__).resolve().parent.parent
 JAXMESH = HERE / ".venv" / "bin" / "jaxmesh"
-TIMEOUT = 900
+TIMEOUT = 1800
 GAP = 0.03
 
 
@@ -176,6 +177,16 @@ def case_ellipsoid_box(out: Path):
     return p, [], "generate ellipsoid box 1.5x1x0.8 seed 5"
 
 
+def _excursion(seed):
+    def case(out: Path):
+        p = out / f"grf_s{seed}.npz"
+        cmd = [str(JAXMESH), "generate", str(p), "--kind", "grf", "--volume-fraction", "0.06",
+               "--correlation-length", "0.06", "--grid", "64", "--seed", str(seed)]
+        subprocess.run(cmd, check=True, capture_output=True, text=True, timeout=TIMEOUT)
+        return p, [], f"generate grf 6 % l 0.06 64^3 seed {seed} (irregular blobs, near-touching)"
+    return case
+
+
 def case_big_sphere(out: Path, n=48):
     np.save(p := out / "big_sphere.npy", sd_sphere(_local(_grid(n), (0.5, 0.5, 0.5)), 0.45))
     return p, [], "r 0.45 centred, gap 0.1 to images"
@@ -205,6 +216,8 @@ CASES = {
     "big_sphere": case_big_sphere,
     "sphere_corner": case_sphere_corner,
     "sphere_edge": case_sphere_edge,
+    "grf_s1": _excursion(1),
+    "grf_s2": _excursion(2),
 }
 
 
