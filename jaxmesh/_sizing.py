@@ -34,8 +34,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import ndimage
 from jaxtyping import Array, ArrayLike, Float, Int
+from scipy import ndimage
 
 from ._periodic import minimum_image, wrap
 from .geometry._differential import max_abs_curvature
@@ -553,12 +553,14 @@ def self_gaps(points: np.ndarray, ids: np.ndarray, normals: np.ndarray, dn1: np.
         hit = inside.any(axis=1)
         first = np.argmax(inside, axis=1)
         own = hit & (owner[np.arange(len(first)), first] == ids[sl])
+        own &= np.linalg.norm(normals[sl], axis=1) > 0.5  # no direction (a flat spot of dn1): no ray
         gap[sl] = np.where(own, ts[first], np.inf)
     return gap
 
 
 def size_sources(microstructure) -> SizeSources:
-    """Sources, their DN2, box gaps and curvature (each inclusion's own phi_fn) for a Microstructure."""
+    """Sources, their DN2 (or own gap, `self_gaps`), box gaps and curvature (each inclusion's own
+    phi_fn) for a Microstructure."""
     ms = microstructure
     points, ids = interface_sources(ms)
     # DN2 may be inf (a single inclusion): clamp to a length no periodic distance exceeds

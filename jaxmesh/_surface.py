@@ -509,7 +509,7 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
     centre = jnp.asarray(((lower + upper) / 2)[None])
     h0 = float(evaluate_size(h_fn, np.asarray(centre))[0])
     step = min(config.mc_step * h0, float(np.min(upper - lower)) / 4)
-    for attempt in range(_MC_ATTEMPTS):
+    for _ in range(_MC_ATTEMPTS):
         raw, tris = extract(phi_fn, lower, upper, step, box)
         if len(tris) < 4:
             raise MeshingError("surfaces", "marching cubes found no closed surface", inclusion.id)
