@@ -147,7 +147,7 @@ def test_box_shaped_inclusion_from_a_sampled_level_set():
 
 def test_an_inclusion_reaching_its_own_image_is_refused_before_the_size_function():
     """An endless fibre along x (a percolating inclusion) has no closed surface in one periodic copy:
-    a clear error naming it, raised before any stage runs."""
+    a clear error naming it, raised before the size function."""
     from jaxmesh._errors import MeshingError
 
     x = np.arange(24) / 24
