@@ -279,8 +279,6 @@ def unfold(points, tris, on_plane, phi_fn, newton_steps: int, rounds: int = 5) -
     until no fold is left (at most `rounds` times). A relaxation that leaves one fold is otherwise
     dropped whole, and the marching-cubes needles it was fixing stay (seen: 1 deg triangles)."""
     points = points.copy()
-    edges, _ = half_edges(tris, len(points))
-    degree = np.bincount(edges.ravel(), minlength=len(points))
     for _ in range(rounds):
         bad = folded(points, tris, phi_fn)
         if not bad.any():
@@ -289,12 +287,18 @@ def unfold(points, tris, on_plane, phi_fn, newton_steps: int, rounds: int = 5) -
         ring = ring[~on_plane[ring].any(axis=1)]  # plane nodes stay on their traces
         if not len(ring):
             break
-        total = np.zeros_like(points)
-        np.add.at(total, edges[:, 0], points[edges[:, 1]])
-        np.add.at(total, edges[:, 1], points[edges[:, 0]])
-        mean = total[ring] / degree[ring, None]
+        mean = neighbour_mean(points, tris)[ring]
         points[ring], _, _ = project(phi_fn, mean, np.zeros((len(ring), 3), bool), newton_steps)
     return points
+
+
+def neighbour_mean(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """(n, 3) mean of each node's edge neighbours on the surface tris."""
+    edges, _ = half_edges(tris, len(points))
+    total = np.zeros_like(points)
+    np.add.at(total, edges[:, 0], points[edges[:, 1]])
+    np.add.at(total, edges[:, 1], points[edges[:, 0]])
+    return total / np.maximum(np.bincount(edges.ravel(), minlength=len(points)), 1)[:, None]
 
 
 _KEEP_ANGLE = 25.0  # degrees: a relaxation may lower the smallest angle only down to this
@@ -401,11 +405,7 @@ def release_touching(points, tris, on_plane, phi_fn, box, newton_steps: int):
         return points, on_plane
     points, on_plane = points.copy(), on_plane.copy()
     on_plane[touch] = False
-    edges, _ = half_edges(tris, len(points))
-    total, degree = np.zeros_like(points), np.bincount(edges.ravel(), minlength=len(points))
-    np.add.at(total, edges[:, 0], points[edges[:, 1]])
-    np.add.at(total, edges[:, 1], points[edges[:, 0]])
-    target = np.where(on_plane[nodes], points[nodes], total[nodes] / degree[nodes, None])
+    target = np.where(on_plane[nodes], points[nodes], neighbour_mean(points, tris)[nodes])
     points[nodes], _, _ = project(phi_fn, target, on_plane[nodes], newton_steps)
     return points, on_plane
 
@@ -520,8 +520,10 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
         pts, _, _ = project(phi_fn, raw, np.zeros(raw.shape, bool), config.newton_steps)
         # the centre's h can be far coarser than the surface's (a large irregular inclusion): a
         # grid that misses its necks and bumps projects into folds; then sample at the surface's h
+        if not folded(pts, tris, phi_fn).any():
+            break
         finer = max(config.mc_step * float(np.quantile(evaluate_size(h_fn, raw), 0.05)), step / 4)
-        if finer > step / 1.5 or not folded(pts, tris, phi_fn).any():
+        if finer > step / 1.5:
             break
         step = finer
     on_plane = np.zeros(pts.shape, bool)
