@@ -183,7 +183,7 @@ def _excursion(seed):
         cmd = [str(JAXMESH), "generate", str(p), "--kind", "grf", "--volume-fraction", "0.06",
                "--correlation-length", "0.06", "--grid", "64", "--seed", str(seed)]
         subprocess.run(cmd, check=True, capture_output=True, text=True, timeout=TIMEOUT)
-        return p, [], f"generate grf 6 % l 0.06 64^3 seed {seed} (irregular blobs, near-touching)"
+        return p, [], f"generate grf 6 % l 0.06 64^3 seed {seed} (irregular blobs)"
     return case
 
 
