@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 from ._compile_cache import enable_compilation_cache
+from ._pipeline import MeshConfig
 from ._errors import MeshingError
 
 
@@ -63,7 +64,8 @@ def _cmd_generate(args: argparse.Namespace) -> int:
             volume_fraction=args.volume_fraction or 0.3, seed=args.seed,
         )
         gen.write_input(args.output, None, box, grid_shape, phi=phi)
-        _progress("generate", f"excursion set on {grid_shape} grid -> {args.output}", t0)
+        _progress("generate", f"excursion set on {grid_shape} grid, node fraction {float((phi < 0).mean()):.4f} "
+                              f"-> {args.output}", t0)
         return 0
     shape = args.kind
     if args.dim == 2:
@@ -131,12 +133,12 @@ def _microstructure_info(ms) -> dict:
 
 
 def _cmd_mesh(args: argparse.Namespace) -> int:
-    from ._pipeline import MeshConfig, mesh_rve
+    from ._pipeline import mesh_rve
     from ._quality import quality_report
 
     t0 = time.perf_counter()
     config = MeshConfig(h=args.h, periodic=not args.no_periodic, seed=args.seed, backend=args.backend,
-                        **_size_kwargs(args))
+                        max_elements=args.max_elements if args.max_elements > 0 else None, **_size_kwargs(args))
     mesh = mesh_rve(args.input, config, box=_box_arg(args.box), progress=lambda line: print(line, flush=True))
     validation = mesh.metadata["validation"]
     for name, check in validation["checks"].items():
@@ -251,6 +253,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--grad", type=float, default=None, help="gradient limit of the size function")
     m.add_argument("--h-max", type=float, default=None)
     m.add_argument("--no-periodic", action="store_true")
+    m.add_argument("--max-elements", type=float, default=MeshConfig.max_elements,
+                   help="stop before the surfaces when the size function asks for more tetrahedra than this "
+                        "(default %(default).3g; 0: no limit)")
     m.add_argument("--backend", choices=("conforming", "tetwild"), default="conforming",
                    help="3D volume mesher: conforming (default: exact surfaces, periodic) or tetwild (fTetWild: "
                         "robust to damaged surfaces, not conforming, not periodic; edge length --h or --iis)")

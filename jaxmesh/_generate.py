@@ -632,9 +632,10 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
 
     The field has covariance exp(-r^2 / (2 l^2)) (l = correlation_length), made by filtering white
     noise with the square root of its spectral density in Fourier space, so it is exactly periodic.
-    Inclusions are {field < u}, u the quantile giving `volume_fraction` of the nodes, less the specks
-    the grid does not resolve (fewer than 8 nodes or under 1.5 steps thick: the mesher refuses them),
-    so the fraction comes out slightly below. phi is the field divided by its gradient norm at nodes
+    Inclusions are {field < u}, u the quantile giving `volume_fraction` of the nodes, less what the
+    mesher refuses: specks the grid does not resolve (fewer than 8 nodes or under 1.5 steps thick) and
+    the smaller of two components less than a quarter step apart (the mesher refuses 0.02 steps as
+    touching, and would refine such gaps far), so the fraction comes out slightly below. phi is the field divided by its gradient norm at nodes
     next to the interface (a first-order distance), extended elsewhere by the periodic Euclidean
     distance transform to those nodes.
 
@@ -665,7 +666,37 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
     g = field - np.quantile(field, volume_fraction)
     phi = _first_order_distance(g, g < 0, h)
     specks = _unresolved_components(phi)  # the mesher refuses them (they are below the grid's resolution)
-    return _first_order_distance(g, (g < 0) & ~specks, h) if specks.any() else phi
+    inside = (g < 0) & ~specks
+    phi = _first_order_distance(g, inside, h) if specks.any() else phi
+    for _ in range(_MAX_DROP_ROUNDS):
+        touching = _touching_components(phi, box)
+        if not touching.any():
+            return phi
+        inside &= ~touching
+        phi = _first_order_distance(g, inside, h)
+    raise RuntimeError(f"excursion_set: components still touching after {_MAX_DROP_ROUNDS} rounds")  # pragma: no cover
+
+
+_MAX_DROP_ROUNDS = 6
+_SEPARATION_STEPS = 0.25  # closest components kept, in grid steps
+
+
+def _touching_components(phi: np.ndarray, box) -> np.ndarray:
+    """(grid) bool: nodes of the smaller component of each pair closer than _SEPARATION_STEPS, by
+    the estimate with which Microstructure.from_levelset refuses touching ones (`close_pairs`)."""
+    from .geometry._components import close_pairs, label_components
+    from .geometry._microstructure import Microstructure
+
+    ms = Microstructure.from_levelset(phi, tuple(box), check_gaps=False)
+    labels, n = label_components(phi < 0, True)
+    spacing = np.asarray(box) / np.asarray(phi.shape)
+    ids, _, _ = close_pairs(ms.dn1, ms.dn2, ms.nearest_id, labels, spacing, _SEPARATION_STEPS * spacing.min(),
+                            True, limit=n)
+    counts = np.bincount(labels.ravel(), minlength=n + 1)
+    drop = np.zeros(n + 1, bool)
+    for a, b in ids:
+        drop[a if b == 0 or counts[a] <= counts[b] else b] = True
+    return drop[labels]
 
 
 def _unresolved_components(phi: np.ndarray) -> np.ndarray:

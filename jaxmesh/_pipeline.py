@@ -35,6 +35,9 @@ class MeshConfig:
         validate: run the validator at the end and store its report in the metadata.
         interior: interior nodes of the volume stage: "bcc" (graded body-centred cubic lattices on h,
             the better quality measured so far, see benchmarks/README.md) or "octree" (paper 4.3).
+        max_elements: refuse (ValueError, before the surfaces) a 3D conforming mesh whose size function
+            predicts more tetrahedra than this; None: no limit. The estimate is
+            _TETS_PER_PREDICTED * c * integral of h^-3 (`predicted_element_count`).
         backend: 3D volume mesher. "conforming" (default): keeps every surface triangle, periodic.
             "tetwild": fTetWild (pytetwild) on the marching-cubes surface of the grid at edge length
             h (or iis), robust to damaged surfaces but NOT conforming (interface nodes only near the
@@ -51,12 +54,13 @@ class MeshConfig:
     seed: int = 0
     validate: bool = True
     interior: str = "bcc"
+    max_elements: float | None = 5e6
     backend: str = "conforming"
 
     def __post_init__(self):
-        for name in ("iis", "nb_el", "curv_alpha", "grad", "h_max", "h"):
+        for name in ("iis", "nb_el", "curv_alpha", "grad", "h_max", "h", "max_elements"):
             value = getattr(self, name)
-            if value is None and name in ("h_max", "h"):
+            if value is None and name in ("h_max", "h", "max_elements"):
                 continue
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or value <= 0:
                 raise ValueError(
@@ -197,6 +201,7 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
         h_jax = float(config.h)
         h_np = lambda p: np.full(len(p), float(config.h))  # noqa: E731
         t = stage("size", t, f"uniform h = {config.h:g}")
+        _check_element_budget(config, _SIMPLEX_DENSITY_3D * math.prod(ms.box) / config.h**3, config.h)
     else:
         from ._sizing import SizeParams, size_function
 
@@ -204,7 +209,10 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
         h_jax = field
         h_np = lambda p: np.asarray(field(jnp.asarray(p, dtype=field.values.dtype)))  # noqa: E731
         values = np.asarray(field.values)
-        t = stage("size", t, f"h in [{values.min():.4f}, {values.max():.4f}]")
+        predicted = float(field.element_count())
+        t = stage("size", t, f"h in [{values.min():.4f}, {values.max():.4f}], "
+                             f"~{_TETS_PER_PREDICTED * predicted:.3g} tetrahedra expected")
+        _check_element_budget(config, predicted, float(values.min()))
 
     surface = mesh_surfaces(ms, h_jax)
     t = stage("surfaces", t, f"{surface.n_points} nodes, {surface.n_triangles} triangles")
@@ -220,6 +228,24 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
         {"surface_points": surface.n_points, "surface_triangles": surface.n_triangles}
     )
     return mesh, t
+
+
+# tetrahedra per element of `predicted_element_count` (c * integral of h^-3, c = 6 sqrt(2)): the
+# meshes of benchmarks/README.md come out 1.8x (Table-1 coarse) to 2.4x (fine) that; the boundary
+# layers and the grading add to the regular-simplex count
+_TETS_PER_PREDICTED = 2.5
+_SIMPLEX_DENSITY_3D = 6.0 * math.sqrt(2.0)
+
+
+def _check_element_budget(config: MeshConfig, predicted: float, h_min: float) -> None:
+    expected = _TETS_PER_PREDICTED * predicted
+    if config.max_elements is not None and expected > config.max_elements:
+        raise ValueError(
+            f"the size function asks for about {expected:.3g} tetrahedra (h down to {h_min:.3g}), more than "
+            f"max_elements = {config.max_elements:.3g}. Hint: coarsen with a larger iis, a smaller nb_el "
+            "(elements across narrow gaps), a larger curv_alpha or grad, or a larger h; or raise max_elements "
+            "(--max-elements) when the machine has the memory and time for it"
+        )
 
 
 def _interior_nodes(ms, h_np, config: MeshConfig):

@@ -558,9 +558,12 @@ def self_gaps(points: np.ndarray, ids: np.ndarray, normals: np.ndarray, dn1: np.
     return gap
 
 
+_MAX_CURVATURE_STEPS = 2.0  # |kappa| <= 2 / grid step: radii of half a step and more
+
+
 def size_sources(microstructure) -> SizeSources:
     """Sources, their DN2 (or own gap, `self_gaps`), box gaps and curvature (each inclusion's own
-    phi_fn) for a Microstructure."""
+    phi_fn, capped at 2 / grid step) for a Microstructure."""
     ms = microstructure
     points, ids = interface_sources(ms)
     # DN2 may be inf (a single inclusion): clamp to a length no periodic distance exceeds
@@ -570,6 +573,10 @@ def size_sources(microstructure) -> SizeSources:
         sel = np.nonzero(ids == inc.id)[0]
         if sel.size:
             kappa[sel] = _curvature(inc.phi_fn, pts[sel])
+    step = min(b / n for b, n in zip(ms.box, ms.grid_shape))
+    # radii of curvature below half a grid step are kinks of the sampled field (a thresholded or
+    # first-order distance), not resolved geometry: without a cap they set h down to its floor
+    kappa = np.minimum(kappa, _MAX_CURVATURE_STEPS / step)
     dn1_grid = np.asarray(ms.dn1, dtype=float)
     normals = _grid_normals(dn1_grid, ms.box, points)
     own_gap = self_gaps(pts, ids, normals, dn1_grid, np.asarray(ms.nearest_id), ms.box, ms.periodic)
@@ -577,7 +584,6 @@ def size_sources(microstructure) -> SizeSources:
     box_gap = box_gaps(pts, normals, ms.box)
     # finer sizes would be lost in the grid interpolation of h (and the grid resolves no thinner layer);
     # finite, so that jax.grad through box_gap / nb_el stays finite where the term is not the minimum
-    step = min(b / n for b, n in zip(ms.box, ms.grid_shape))
     box_gap = np.clip(box_gap, step / 6.0, float(np.linalg.norm(ms.box)))
     return SizeSources(points, ids, dn2, jnp.asarray(kappa), box_gap)
 

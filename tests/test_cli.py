@@ -67,6 +67,11 @@ def test_absurd_sizes_are_rejected(tmp_path, capsys):
     assert "larger than half" in capsys.readouterr().err
     assert main(["mesh", str(rve), "-o", str(tmp_path / "x.vtu"), "--iis", "1e-6"]) == 2
     assert "1/500" in capsys.readouterr().err
+    sphere = tmp_path / "sphere.npz"
+    assert main(["generate", str(sphere), "--n", "1", "--radius", "0.2", "--grid", "24"]) == 0
+    assert main(["mesh", str(sphere), "-o", str(tmp_path / "x.vtu"), "--max-elements", "1000"]) == 2
+    assert "more than max_elements" in capsys.readouterr().err
+    assert not list(tmp_path.glob("x.vtu*"))
 
 
 @pytest.mark.parametrize("box_gap", [None, "0.08"])

@@ -318,7 +318,8 @@ def test_excursion_set_periodic_fraction_and_distance_like():
                                                      seed=1))
     other = excursion_set(box, shape, correlation_length=0.08, volume_fraction=0.35, seed=2)
     assert not np.array_equal(phi < 0, other < 0)
-    phi3 = excursion_set((1.0, 1.0, 1.0), (24, 24, 24), correlation_length=0.12, volume_fraction=0.2, seed=0)
+    # l = 3.4 steps (at 2.9 steps, 0.12, two components touch at the grid's resolution: one is dropped, 17 %)
+    phi3 = excursion_set((1.0, 1.0, 1.0), (24, 24, 24), correlation_length=0.14, volume_fraction=0.2, seed=0)
     assert abs((phi3 < 0).mean() - 0.2) < 0.02
 
 
@@ -336,6 +337,27 @@ def test_excursion_set_has_no_specks_the_mesher_refuses(seed):
     assert abs((phi < 0).mean() - 0.1) < 0.01
     ms = Microstructure.from_levelset(phi)
     assert len(ms.inclusions) == n and min(inc.description["thickness"] for inc in ms.inclusions) >= 1.5
+
+
+@pytest.mark.parametrize("seed, fraction", [(6, 0.06), (2, 0.1)])
+def test_excursion_set_drops_components_touching_at_the_grid_resolution(seed, fraction):
+    """At l ~ 3 grid steps these raw excursion sets hold two components less than a quarter step
+    apart (0.02 is refused by Microstructure.from_levelset as touching); the generator drops the
+    smaller one."""
+    from jaxmesh.geometry._components import label_components
+    from jaxmesh.geometry._microstructure import Microstructure
+
+    box, shape = (1.0, 1.0, 1.0), (32, 32, 32)
+    kwargs = dict(correlation_length=0.09, volume_fraction=fraction, seed=seed)
+    raw = gen._touching_components
+    seen = []
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(gen, "_touching_components", lambda phi, b: seen.append(raw(phi, b)) or seen[-1])
+        phi = excursion_set(box, shape, **kwargs)
+    assert seen[0].any() and not seen[-1].any()  # the raw set had a touching pair; the output has none
+    ms = Microstructure.from_levelset(phi)
+    assert len(ms.inclusions) == label_components(phi < 0, True)[1]
+    assert abs((phi < 0).mean() - fraction) < 0.01
 
 
 @pytest.mark.parametrize(

@@ -116,6 +116,33 @@ def test_two_spheres_one_step_apart_stay_two(order):
     assert ms.label(np.array([c1, c2, (0.5, 0.5, 0.5)])).tolist() == [1, 2, 0]
 
 
+@pytest.mark.parametrize("d", [2, 3])
+def test_levelset_inclusions_touching_at_the_grid_resolution_are_refused_by_id(d):
+    n, r = 32, 0.15
+    h = 1 / n
+    X = nodes(n, d)
+
+    def pair(gap):  # the gap centred on the grid node x = 0.5 (that node is the matrix between them)
+        c1, c2 = [0.5] * d, [0.5] * d
+        c1[0], c2[0] = 0.5 - 0.5 * gap - r, 0.5 + 0.5 * gap + r
+        return np.minimum(ball(X, c1, r), ball(X, c2, r))
+
+    with pytest.raises(ValueError, match=r"at least 0\.02 grid step .* inclusions 1 and 2: gap ~ 0\.010 steps "
+                                         r"near x = \(0\.5"):
+        Microstructure.from_levelset(pair(0.01 * h))
+    assert len(Microstructure.from_levelset(pair(0.01 * h), check_gaps=False).inclusions) == 2
+    assert len(Microstructure.from_levelset(pair(0.05 * h)).inclusions) == 2
+
+
+def test_labels_touching_along_an_edge_or_a_corner_still_load():
+    # the smoothed voxel level sets keep such pairs apart
+    for second in (np.s_[14:20, 14:20, 8:14], np.s_[14:20, 14:20, 14:20]):
+        lab = np.zeros((32, 32, 32), int)
+        lab[8:14, 8:14, 8:14] = 1
+        lab[second] = 2
+        assert len(Microstructure.from_labels(lab).inclusions) == 2
+
+
 def _thresholded_random_field(n, seed, fraction, correlation):
     """A smoothed periodic random field thresholded into blobs: far from a distance off its zero
     set (|grad| ~ 20 there, then flat), with the specks below 30 nodes filled."""
@@ -141,7 +168,7 @@ def test_own_level_sets_of_a_thresholded_random_field_have_no_stray_zero_set(see
     n = 48
     h = 1 / n
     phi = _thresholded_random_field(n, seed, 0.07, 0.05)
-    ms = Microstructure.from_levelset(phi)
+    ms = Microstructure.from_levelset(phi, check_gaps=False)  # seed 11 has a pair 0.021 steps apart
     assert ms.inclusions[0].description["scale"] > 5  # not distance-like
     labels, m = label_components(phi < 0, True)
     assert m == len(ms.inclusions) >= 5
@@ -335,6 +362,7 @@ def test_bad_levelsets():
     _raises("finite", Microstructure.from_levelset, bad)
     _raises("2D or 3D", Microstructure.from_levelset, phi[0, 0])
     _raises("no negative values", Microstructure.from_levelset, np.abs(phi) + 0.1)
+    _raises("some matrix", Microstructure.from_levelset, -np.abs(phi) - 0.1)
     _raises("periodic=False", Microstructure.from_levelset, np.linalg.norm(X - 0.3, axis=-1) - 0.2)
     ms = Microstructure.from_levelset(np.linalg.norm(X - 0.3, axis=-1) - 0.2, periodic=False)
     assert len(ms.inclusions) == 1

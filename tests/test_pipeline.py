@@ -160,3 +160,18 @@ def test_an_inclusion_reaching_its_own_image_is_refused_before_the_size_function
         mesh_rve(ms, MeshConfig(iis=0.1), progress=stages.append)
     assert err.value.inclusion == next(i.id for i in ms.inclusions if i.upper[0] - i.lower[0] > 0.99)
     assert any("] input" in s for s in stages) and not any("] size" in s for s in stages)
+
+
+def test_a_mesh_larger_than_max_elements_is_refused_before_the_surfaces():
+    """The size function's estimate (2.5 c * integral of h^-3) is checked against max_elements: a
+    clear error before any surface is meshed, for the size function and for a uniform h."""
+    specs = [_sphere((0.5, 0.5, 0.5), 0.3)]
+    ms = _levelset_rve(specs, n=24)
+    stages = []
+    with pytest.raises(ValueError, match=r"about [\d.e+]+ tetrahedra .*more than max_elements = 1e\+03"):
+        mesh_rve(ms, MeshConfig(iis=0.08, max_elements=1e3), progress=stages.append)
+    assert any("] size" in s for s in stages) and not any("] surfaces" in s for s in stages)
+    with pytest.raises(ValueError, match="max_elements"):
+        mesh_rve(ms, MeshConfig(h=0.01, max_elements=1e6))  # 8.5e6 regular tets, 2.1e7 expected
+    with pytest.raises(ValueError, match="MeshConfig.max_elements"):
+        MeshConfig(max_elements=-1)

@@ -142,6 +142,27 @@ def test_sphere_curvature_size(two_spheres):
     assert np.all(h >= alpha * 0.25 * 0.99) and np.all(h <= alpha * 0.25 + G * ms.spacing[0])
 
 
+def test_curvature_capped_at_half_a_grid_step_radius():
+    """Two overlapping balls sampled on the grid: the crease where they meet is a kink of the field
+    whose spline curvature exceeds what the grid resolves; size_sources caps |kappa| at 2 / step
+    (radius half a step), so h_curv >= alpha step / 2 there, and leaves the rest as it is."""
+    n = 24
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1)
+    ball = lambda c, r: np.linalg.norm(X - np.asarray(c), axis=-1) - r  # noqa: E731
+    ms = Microstructure.from_levelset(np.minimum(ball((0.38, 0.5, 0.5), 0.18), ball((0.62, 0.5, 0.5), 0.18)))
+    src = size_sources(ms)
+    raw = np.abs(np.asarray(max_abs_curvature(ms.inclusions[0].phi_fn, jnp.asarray(src.points))))
+    step = 1 / n
+    assert raw.max() > 2.5 / step  # the cap bites
+    assert np.asarray(src.kappa).max() == pytest.approx(2 / step)
+    below = raw < 2 / step
+    assert below.mean() > 0.9
+    np.testing.assert_allclose(np.asarray(src.kappa)[below], raw[below])
+    h0 = np.asarray(size_function(ms, SizeParams(iis=0.2, nb_el=1.0, curv_alpha=0.5), sources=src).source_h0)
+    assert h0.min() == pytest.approx(0.5 * step / 2)
+
+
 def test_gap_narrowness_size(two_spheres):
     """Two spheres at gap d: h_nar = d / nb_el in the gap, the cone g d / 2 above it mid-gap."""
     ms, src = two_spheres

@@ -439,6 +439,53 @@ def accumulate(dn1, dn2, nearest, cid: int, indices, values) -> None:
 # ---- validation of raw inputs (NumPy only: runs before anything is traced) ----
 
 _MIN_SAMPLES, _MIN_THICKNESS = 8, 1.5  # a resolved feature: >= 8 nodes and >= 1.5 steps thick
+# grid inputs: inclusions closer than this (in steps) touch at the grid's resolution. Two spheres one
+# step apart, sampled with the gap's ends 0.04 steps from two nodes, measure 0.08: the cubic own level
+# set of the one whose matrix neighbour holds the other's distance rings towards it
+_MIN_GAP_STEPS = 0.02
+
+
+def close_pairs(dn1, dn2, nearest, labels, spacing, min_gap: float, periodic: bool, limit: int = 64):
+    """Pairs of inclusions whose gap, estimated at nodes within a step of an interface as dn1 + dn2,
+    is below min_gap: (k, 2) ids (ascending; the second 0 when no other inclusion is within two steps
+    of the node), (k,) gaps and (k,) flat node indices, worst first, one row per pair, at most `limit`."""
+    h = float(min(spacing))
+    gap = np.where(np.abs(dn1) <= h, dn1 + dn2, np.inf).ravel()
+    nodes = np.flatnonzero(gap < min_gap)
+    nodes = nodes[np.argsort(gap[nodes], kind="stable")]
+    shape = np.asarray(labels.shape)
+    offsets = np.stack(np.meshgrid(*[np.arange(-2, 3)] * labels.ndim, indexing="ij"), -1).reshape(-1, labels.ndim)
+    radius = np.linalg.norm(offsets * np.asarray(spacing), axis=1)
+    rows, seen = [], set()
+    for node in nodes:
+        a = int(nearest.flat[node])
+        idx = np.asarray(np.unravel_index(node, labels.shape)) + offsets
+        inside = np.ones(len(idx), bool) if periodic else ((idx >= 0) & (idx < shape)).all(axis=1)
+        around = labels[tuple((idx[inside] % shape).T)]
+        other = (around > 0) & (around != a)
+        b = int(around[other][np.argmin(radius[inside][other])]) if other.any() else 0
+        pair = (min(a, b), max(a, b)) if b else (a, 0)
+        if pair not in seen:
+            seen.add(pair)
+            rows.append((*pair, gap[node], node))
+            if len(rows) == limit:
+                break
+    ids = np.array([r[:2] for r in rows], np.int64).reshape(-1, 2)
+    return ids, np.array([r[2] for r in rows], float), np.array([r[3] for r in rows], np.int64)
+
+
+def close_pairs_message(ids, gaps, nodes, shape, spacing, min_gap: float, where: str) -> str:
+    """The error for `close_pairs` output (non-empty): the worst pairs by id, gap and place."""
+    h = float(min(spacing))
+    listed = []
+    for (a, b), g, node in list(zip(ids, gaps, nodes))[:6]:
+        x = tuple(round(float(i * s), 4) for i, s in zip(np.unravel_index(node, shape), spacing))
+        what = "overlap" if g < 0 else f"gap ~ {g / h:.3f} steps"
+        listed.append(f"inclusions {a} and {b if b else 'a neighbour'}: {what} near x = {x}")
+    return (f"{where} expected inclusions separated by at least {min_gap / h:.3g} grid step ({min_gap:.4g}), "
+            f"got {len(ids)} pair(s) closer (touching or overlapping at the grid's resolution): "
+            + "; ".join(listed) + ". Hint: move them apart, or merge them into one inclusion, or sample "
+            "the field on a finer grid.")
 
 
 def check_field(values, where: str, labels: bool = False) -> np.ndarray:

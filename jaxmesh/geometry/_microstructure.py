@@ -353,7 +353,8 @@ class Microstructure:
         return float(np.clip(0.5 - self.dn1 / h, 0.0, 1.0).mean())
 
     @classmethod
-    def from_levelset(cls, values, box=None, periodic=True, order="cubic", *, reach=None) -> Microstructure:
+    def from_levelset(cls, values, box=None, periodic=True, order="cubic", *, reach=None,
+                      check_gaps: bool = True) -> Microstructure:
         """Inclusions = periodic connected components of {phi < 0} of one global field.
 
         Args:
@@ -364,6 +365,8 @@ class Microstructure:
             periodic: the field is periodic (checked: a wrap-around jump of many steps is an error).
             order: "cubic" (C2 B-spline) or "linear" interpolation of each inclusion's window.
             reach: distance up to which dn1/dn2 are exact; None: everywhere if affordable.
+            check_gaps: refuse inclusions less than 0.02 grid step apart (touching at the grid's
+                resolution: the size function would refine the gap down to its floor).
 
         Returns:
             The Microstructure; each inclusion's description holds n_samples and thickness (steps).
@@ -378,6 +381,11 @@ class Microstructure:
             raise ValueError(
                 f"from_levelset expected an inclusion (phi < 0 somewhere), got no negative values "
                 f"(min {v.min():.4g}). Hint: the convention is negative inside; pass -phi if reversed."
+            )
+        if mask.all():
+            raise ValueError(
+                f"from_levelset expected some matrix (phi >= 0 somewhere), got phi < 0 at every node "
+                f"(max {v.max():.4g}). Hint: the convention is negative inside; pass -phi if reversed."
             )
         if periodic:
             repeated = comp.repeated_end_axes(v)
@@ -415,7 +423,7 @@ class Microstructure:
             windows.append(win)
         descriptions = [{"kind": "levelset", "scale": float(scale)} for _ in range(n)]
         return cls._from_windows(box, periodic, order, labels, (starts, lengths), windows, fields, r,
-                                 descriptions)
+                                 descriptions, "from_levelset", check_gaps)
 
     @classmethod
     def from_labels(cls, labels, box=None, periodic=True, *, reach=None) -> Microstructure:
@@ -473,11 +481,12 @@ class Microstructure:
             windows.append(win)
         descriptions = [{"kind": "labels", "label": int(val)} for val in values]
         return cls._from_windows(box, periodic, "cubic", comps, (starts, lengths), windows, fields, r,
-                                 descriptions)
+                                 descriptions, "from_labels")
 
     @classmethod
-    def _from_windows(cls, box, periodic, order, labels, arcs, windows, fields, r, descriptions):
-        """Shared tail of from_levelset / from_labels: size checks, dn1/dn2, bounds, JAX phi_fns.
+    def _from_windows(cls, box, periodic, order, labels, arcs, windows, fields, r, descriptions, where: str,
+                      check_gaps: bool = True):
+        """Shared tail of from_levelset / from_labels: size and gap checks, dn1/dn2, bounds, JAX phi_fns.
         labels: (grid) component ids; arcs: (starts, lengths) (N, d); fields: window level sets."""
         shape, (starts, lengths) = labels.shape, arcs
         spacing = np.array([L / n for L, n in zip(box, shape)])
@@ -495,6 +504,11 @@ class Microstructure:
             vals = comp.frame_values(W, win, own, fo, spacing, tree)
             comp.accumulate(dn1, dn2, nearest, c, idx, vals)
         reach = _finish_dn(dn1, dn2, nearest, labels, spacing, box, periodic, r)
+        if check_gaps:
+            min_gap = comp._MIN_GAP_STEPS * min(spacing)
+            ids, gaps, nodes = comp.close_pairs(dn1, dn2, nearest, labels, spacing, min_gap, periodic)
+            if len(ids):
+                raise ValueError(comp.close_pairs_message(ids, gaps, nodes, shape, spacing, min_gap, where))
         inclusions = []
         for c, (win, W, own, desc, stat) in enumerate(zip(windows, fields, owns, descriptions, stats), 1):
             lo, hi = comp.crossing_bounds(W, own, win.full)
@@ -564,7 +578,7 @@ class Microstructure:
             comp.accumulate(dn1, dn2, nearest, c, comp.frame_indices(fo, fs, shape, periodic), vals)
         labels = np.where(dn1 < 0, nearest, 0)
         reach_len = _finish_dn(dn1, dn2, nearest, labels, spacing, box, periodic, r)
-        _check_gaps(dn1, dn2, nearest, labels, spacing, len(fns))
+        _check_gaps(dn1, dn2, nearest, labels, spacing, len(fns), periodic)
         inclusions = [
             Inclusion(c, phi, lo, hi, vol, desc)
             for c, (phi, (lo, hi), vol, desc) in enumerate(zip(phis, bounds, volumes, descriptions), start=1)
@@ -597,22 +611,15 @@ def _finish_dn(dn1, dn2, nearest, labels, spacing, box, periodic, r) -> float:
     return r * h if np.isfinite(r) else np.inf
 
 
-def _check_gaps(dn1, dn2, nearest, labels, spacing, n: int):
+def _check_gaps(dn1, dn2, nearest, labels, spacing, n: int, periodic: bool):
     """Functions: every inclusion present on the grid, none closer than one grid step to another
     (gap estimated at nodes within a step of an interface as dn1 + dn2)."""
     h = min(spacing)
     missing = sorted(set(range(1, n + 1)) - set(np.unique(labels[labels > 0]).tolist()))
-    gap = np.where(np.abs(dn1) <= h, dn1 + dn2, np.inf)
-    worst = np.unravel_index(np.argmin(gap), dn1.shape)
-    if gap[worst] < h * (1 - 1e-9):
-        a = int(nearest[worst])
-        x = tuple(round(float(i * s), 4) for i, s in zip(worst, spacing))
-        what = "overlap" if gap[worst] < 0 else "touch (gap below one grid step)"
-        raise ValueError(
-            f"from_functions expected inclusions separated by at least one grid step ({h:.4g}), but "
-            f"inclusion {a} and a neighbour {what}: gap ~ {gap[worst] / h:.2f} steps near x = {x}. "
-            "Hint: move them apart (e.g. random_inclusions(..., min_gap=...)) or refine grid_shape."
-        )
+    ids, gaps, nodes = comp.close_pairs(dn1, dn2, nearest, labels, spacing, h * (1 - 1e-9), periodic)
+    if len(ids):
+        raise ValueError(comp.close_pairs_message(ids, gaps, nodes, labels.shape, spacing, h, "from_functions")
+                         .replace("Hint: ", "Hint: e.g. random_inclusions(..., min_gap=...); "))
     if missing:
         raise ValueError(f"from_functions expected every inclusion to own grid nodes, got {missing} hidden "
                          "inside others. Hint: remove nested or duplicated inclusions.")
