@@ -339,7 +339,7 @@ def test_excursion_set_has_no_specks_the_mesher_refuses(seed):
     assert len(ms.inclusions) == n and min(inc.description["thickness"] for inc in ms.inclusions) >= 1.5
 
 
-@pytest.mark.parametrize("seed, fraction", [(6, 0.06), (2, 0.1)])
+@pytest.mark.parametrize("seed, fraction", [(2, 0.1), (7, 0.1)])
 def test_excursion_set_drops_components_touching_at_the_grid_resolution(seed, fraction):
     """At l ~ 3 grid steps these raw excursion sets hold two components less than a quarter step
     apart (0.02 is refused by Microstructure.from_levelset as touching); the generator drops the

@@ -134,6 +134,24 @@ def test_levelset_inclusions_touching_at_the_grid_resolution_are_refused_by_id(d
     assert len(Microstructure.from_levelset(pair(0.05 * h)).inclusions) == 2
 
 
+def test_a_matrix_node_shared_by_two_inclusions_does_not_pull_the_farther_one():
+    """Two spheres one step apart, the gap's ends 0.04 steps past nodes 23 and 24: node 24 holds
+    sphere 2's distance (0.04 steps). As sphere 1's value it made sphere 1's cubic level set ring
+    half a step into the gap (its zero set at x = 0.4986, not 0.48); its extrapolation is used."""
+    n, r = 48, 0.18
+    h = 1 / n
+    X = nodes(n, 3)
+    phi = np.minimum(ball(X, (0.3, 0.5, 0.5), r), ball(X, (0.3 + 2 * r + h, 0.5, 0.5), r))
+    ms = Microstructure.from_levelset(phi)
+    line = np.stack([np.linspace(0.47, 0.5, 3001), np.full(3001, 0.5), np.full(3001, 0.5)], axis=-1)
+    phi1 = ms.inclusion_phi(1, line)
+    crossing = line[np.flatnonzero(phi1 > 0)[0], 0]
+    assert crossing == pytest.approx(0.3 + r, abs=0.02 * h)
+    assert (np.diff(phi1) > 0).all()  # no ringing on the way to node 24
+    node = (24, 24, 24)
+    assert ms.nearest_id[node] == 2 and ms.dn2[node] == pytest.approx(0.96 * h, abs=0.02 * h)
+
+
 def test_labels_touching_along_an_edge_or_a_corner_still_load():
     # the smoothed voxel level sets keep such pairs apart
     for second in (np.s_[14:20, 14:20, 8:14], np.s_[14:20, 14:20, 14:20]):

@@ -205,7 +205,7 @@ def outside_distance(tree: cKDTree, coords: np.ndarray, d_nodes: np.ndarray, spa
     return np.maximum(out, 1e-3 * h)  # outside: strictly positive
 
 
-def levelset_window_field(values, own, nearest, cid: int, spacing, full) -> np.ndarray:
+def levelset_window_field(values, own, nearest, cid: int, spacing, full, other=None) -> np.ndarray:
     """Own level set of component cid on its window, rebuilt from the global field.
 
     The input values are kept inside the component, at its outside face neighbours, and at the
@@ -215,18 +215,39 @@ def levelset_window_field(values, own, nearest, cid: int, spacing, full) -> np.n
     on every other inclusion and |grad| ~ 1. Where the input is not a distance away from its zero
     set (a thresholded random field, scan intensities), kept values would jump against the
     distances and the cubic spline would ring below zero beside the jump.
+
+    A face neighbour shared with another component (`other`, window bool) holds one value, the
+    distance to the nearer of the two; for this component it is at least that, and is taken as the
+    linear extrapolation of its own values towards the node (kept as a value, two spheres one step
+    apart had the farther one's spline ring half a step towards the nearer one).
     """
     rim = ndimage.binary_dilation(own) & ~own  # outside face neighbours: non-negative by construction
     away = ~(own | rim)
     out = values.copy()
+    if other is not None:
+        shared = rim & ndimage.binary_dilation(other)
+        if shared.any():
+            out[shared] = np.maximum(values[shared], _extrapolated(values, own, spacing)[shared])
     if away.any():
-        tree = surface_tree(np.where(own | rim, values, 1.0), own, spacing, full)
+        tree = surface_tree(np.where(own | rim, out, 1.0), own, spacing, full)
         coords = np.stack(np.nonzero(away), axis=-1) * np.asarray(spacing)
         dist = outside_distance(tree, coords, edt(own, spacing, full)[away], spacing)
         v = values[away]
         agree = (v >= 0) & (nearest[away] == cid) & (np.abs(v - dist) <= 0.5 * min(spacing))
         out[away] = np.where(agree, v, dist)
     return out
+
+
+def _extrapolated(values, own, spacing) -> np.ndarray:
+    """Per node: the smallest linear extrapolation of own values from a face neighbour in own (from
+    that neighbour and the next node on the line when it is own too, else neighbour + step)."""
+    est = np.full(values.shape, np.inf)
+    for k in range(values.ndim):
+        for s in (1, -1):
+            v1, o1 = np.roll(values, s, axis=k), np.roll(own, s, axis=k)
+            v2, o2 = np.roll(values, 2 * s, axis=k), np.roll(own, 2 * s, axis=k)
+            est = np.where(o1, np.minimum(est, np.where(o2, 2 * v1 - v2, v1 + spacing[k])), est)
+    return est
 
 
 def labels_window_field(own, spacing, full, sigma: float = 0.75) -> np.ndarray:

@@ -419,7 +419,8 @@ class Microstructure:
             idx = comp.frame_indices(win.origin, win.shape, shape, periodic)
             own = comp.take(labels, idx) == c
             near_w = comp.take(near, idx)
-            fields.append(comp.levelset_window_field(comp.take(v, idx), own, near_w, c, spacing, win.full))
+            other = (comp.take(labels, idx) > 0) & ~own
+            fields.append(comp.levelset_window_field(comp.take(v, idx), own, near_w, c, spacing, win.full, other))
             windows.append(win)
         descriptions = [{"kind": "levelset", "scale": float(scale)} for _ in range(n)]
         return cls._from_windows(box, periodic, order, labels, (starts, lengths), windows, fields, r,
