@@ -12,8 +12,8 @@ import time
 from pathlib import Path
 
 from ._compile_cache import enable_compilation_cache
-from ._pipeline import MeshConfig
 from ._errors import MeshingError
+from ._pipeline import MeshConfig
 
 
 def _box_arg(values: list[float] | None) -> tuple[float, ...] | None:

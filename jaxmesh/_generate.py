@@ -632,12 +632,12 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
 
     The field has covariance exp(-r^2 / (2 l^2)) (l = correlation_length), made by filtering white
     noise with the square root of its spectral density in Fourier space, so it is exactly periodic.
-    Inclusions are {field < u}, u the quantile giving `volume_fraction` of the nodes, less what the
-    mesher refuses: specks the grid does not resolve (fewer than 8 nodes or under 1.5 steps thick) and
+    Inclusions are {field < u}, u the quantile giving `volume_fraction` of the nodes, less specks the
+    grid does not resolve (fewer than 8 nodes or under 1.5 steps thick: the mesher refuses them) and
     the smaller of two components less than a quarter step apart (the mesher refuses 0.02 steps as
-    touching, and would refine such gaps far), so the fraction comes out slightly below. phi is the field divided by its gradient norm at nodes
-    next to the interface (a first-order distance), extended elsewhere by the periodic Euclidean
-    distance transform to those nodes.
+    touching, and would refine such gaps far), so the fraction comes out slightly below. phi is the
+    field divided by its gradient norm at nodes next to the interface (a first-order distance),
+    extended elsewhere by the periodic Euclidean distance transform to those nodes.
 
     Args:
         box: (d,) lengths; grid_shape: (d,) nodes per axis (node i at x = i L / n).

@@ -460,9 +460,8 @@ def accumulate(dn1, dn2, nearest, cid: int, indices, values) -> None:
 # ---- validation of raw inputs (NumPy only: runs before anything is traced) ----
 
 _MIN_SAMPLES, _MIN_THICKNESS = 8, 1.5  # a resolved feature: >= 8 nodes and >= 1.5 steps thick
-# grid inputs: inclusions closer than this (in steps) touch at the grid's resolution. Two spheres one
-# step apart, sampled with the gap's ends 0.04 steps from two nodes, measure 0.08: the cubic own level
-# set of the one whose matrix neighbour holds the other's distance rings towards it
+# grid inputs: inclusions closer than this (in steps) touch at the grid's resolution (the estimate
+# below is itself good to a fraction of a step only; the size function would refine such a gap far)
 _MIN_GAP_STEPS = 0.02
 
 
@@ -495,7 +494,9 @@ def close_pairs(dn1, dn2, nearest, labels, spacing, min_gap: float, periodic: bo
     return ids, np.array([r[2] for r in rows], float), np.array([r[3] for r in rows], np.int64)
 
 
-def close_pairs_message(ids, gaps, nodes, shape, spacing, min_gap: float, where: str) -> str:
+def close_pairs_message(ids, gaps, nodes, shape, spacing, min_gap: float, where: str,
+                        hint: str = "move them apart, or merge them into one inclusion, or sample the field on a "
+                                    "finer grid") -> str:
     """The error for `close_pairs` output (non-empty): the worst pairs by id, gap and place."""
     h = float(min(spacing))
     listed = []
@@ -505,8 +506,7 @@ def close_pairs_message(ids, gaps, nodes, shape, spacing, min_gap: float, where:
         listed.append(f"inclusions {a} and {b if b else 'a neighbour'}: {what} near x = {x}")
     return (f"{where} expected inclusions separated by at least {min_gap / h:.3g} grid step ({min_gap:.4g}), "
             f"got {len(ids)} pair(s) closer (touching or overlapping at the grid's resolution): "
-            + "; ".join(listed) + ". Hint: move them apart, or merge them into one inclusion, or sample "
-            "the field on a finer grid.")
+            + "; ".join(listed) + f". Hint: {hint}.")
 
 
 def check_field(values, where: str, labels: bool = False) -> np.ndarray:

@@ -619,8 +619,9 @@ def _check_gaps(dn1, dn2, nearest, labels, spacing, n: int, periodic: bool):
     missing = sorted(set(range(1, n + 1)) - set(np.unique(labels[labels > 0]).tolist()))
     ids, gaps, nodes = comp.close_pairs(dn1, dn2, nearest, labels, spacing, h * (1 - 1e-9), periodic)
     if len(ids):
-        raise ValueError(comp.close_pairs_message(ids, gaps, nodes, labels.shape, spacing, h, "from_functions")
-                         .replace("Hint: ", "Hint: e.g. random_inclusions(..., min_gap=...); "))
+        raise ValueError(comp.close_pairs_message(ids, gaps, nodes, labels.shape, spacing, h, "from_functions",
+                                                  "move them apart (e.g. random_inclusions(..., min_gap=...)) or "
+                                                  "refine grid_shape"))
     if missing:
         raise ValueError(f"from_functions expected every inclusion to own grid nodes, got {missing} hidden "
                          "inside others. Hint: remove nested or duplicated inclusions.")
