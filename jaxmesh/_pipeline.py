@@ -37,7 +37,7 @@ class MeshConfig:
             the better quality measured so far, see benchmarks/README.md) or "octree" (paper 4.3).
         max_elements: refuse (ValueError, before the surfaces) a 3D conforming mesh whose size function
             predicts more tetrahedra than this; None: no limit. The estimate is
-            _TETS_PER_PREDICTED * c * integral of h^-3 (`predicted_element_count`).
+            _TETS_PER_PREDICTED * c * integral of h^-3 (`cellwise_element_count`).
         backend: 3D volume mesher. "conforming" (default): keeps every surface triangle, periodic.
             "tetwild": fTetWild (pytetwild) on the marching-cubes surface of the grid at edge length
             h (or iis), robust to damaged surfaces but NOT conforming (interface nodes only near the
@@ -203,13 +203,13 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
         t = stage("size", t, f"uniform h = {config.h:g}")
         _check_element_budget(config, _SIMPLEX_DENSITY_3D * math.prod(ms.box) / config.h**3, config.h)
     else:
-        from ._sizing import SizeParams, size_function
+        from ._sizing import SizeParams, cellwise_element_count, size_function
 
         field = size_function(ms, SizeParams(**config.size_kwargs()))
         h_jax = field
         h_np = lambda p: np.asarray(field(jnp.asarray(p, dtype=field.values.dtype)))  # noqa: E731
         values = np.asarray(field.values)
-        predicted = float(field.element_count())
+        predicted = cellwise_element_count(values, ms.box)
         t = stage("size", t, f"h in [{values.min():.4f}, {values.max():.4f}], "
                              f"~{_TETS_PER_PREDICTED * predicted:.3g} tetrahedra expected")
         _check_element_budget(config, predicted, float(values.min()))
@@ -230,9 +230,10 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
     return mesh, t
 
 
-# tetrahedra per element of `predicted_element_count` (c * integral of h^-3, c = 6 sqrt(2)): the
-# meshes of benchmarks/README.md come out 1.8x (Table-1 coarse) to 2.4x (fine) that; the boundary
-# layers and the grading add to the regular-simplex count
+# tetrahedra per element of c * integral of h^-3 (c = 6 sqrt(2)): the Table-1 meshes of
+# benchmarks/README.md come out 1.8x (coarse) to 2.4x (fine) that (measured with the node sum
+# `predicted_element_count`, which the cellwise count matches where h varies little within a cell);
+# the boundary layers and the grading add to the regular-simplex count
 _TETS_PER_PREDICTED = 2.5
 _SIMPLEX_DENSITY_3D = 6.0 * math.sqrt(2.0)
 

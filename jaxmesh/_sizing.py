@@ -437,6 +437,33 @@ def predicted_element_count(h: Float[ArrayLike, "..."], box: Sequence[float]) ->
     return _SIMPLEX_DENSITY[h.ndim] * math.prod(box) * jnp.mean(h ** (-h.ndim))
 
 
+
+def cellwise_element_count(h: np.ndarray, box: Sequence[float], steep: float = 1.5, samples: int = 4) -> float:
+    """c_d * integral of h^-d with h multilinear in each periodic grid cell (NumPy, not differentiable).
+
+    `predicted_element_count` weighs each node's h^-d by a whole cell: where a gap far below the grid
+    step sets h at one node, that overcounts by orders of magnitude (a 24^3 grid, h 0.0008 at one node
+    and 0.0125 at its neighbours: 3e6 predicted, 84k made). Cells whose corner sizes differ by more
+    than `steep` times are sampled at samples^d midpoints instead; smooth cells use the mean of their
+    corners (the node mean, up to the order of summation).
+    """
+    h = np.asarray(h, dtype=float)
+    d = h.ndim
+    bits = list(itertools.product((0, 1), repeat=d))
+    corners = np.stack([np.roll(h, tuple(-b for b in bit), axis=tuple(range(d))) for bit in bits], axis=-1)
+    corners = corners.reshape(-1, len(bits))
+    density = (corners ** -float(d)).mean(axis=1)
+    sharp = np.flatnonzero(corners.max(axis=1) > steep * corners.min(axis=1))
+    if sharp.size:
+        t = (np.arange(samples) + 0.5) / samples
+        pts = np.stack(np.meshgrid(*[t] * d, indexing="ij"), axis=-1).reshape(-1, d)
+        weights = np.prod([np.where(np.asarray(bit)[None, :] == 1, pts[:, [k]], 1 - pts[:, [k]])
+                           for k, bit in enumerate(np.asarray(bits).T)], axis=0)  # (samples^d, 2^d)
+        for lo in range(0, sharp.size, 1 << 14):
+            chunk = sharp[lo:lo + (1 << 14)]
+            density[chunk] = ((corners[chunk] @ weights.T) ** -float(d)).mean(axis=1)
+    return float(_SIMPLEX_DENSITY[d] * math.prod(box) * density.mean())
+
 # ----------------------------------------------------------------------------- size field
 class SizeField(eqx.Module):
     """h(x) sampled on the level-set grid, interpolated like the level sets (periodic linear).

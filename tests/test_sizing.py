@@ -12,6 +12,7 @@ from jaxmesh._sizing import (
     SizeField,
     SizeParams,
     box_gaps,
+    cellwise_element_count,
     interface_edges,
     interface_sources,
     limit_gradient,
@@ -161,6 +162,27 @@ def test_curvature_capped_at_half_a_grid_step_radius():
     np.testing.assert_allclose(np.asarray(src.kappa)[below], raw[below])
     h0 = np.asarray(size_function(ms, SizeParams(iis=0.2, nb_el=1.0, curv_alpha=0.5), sources=src).source_h0)
     assert h0.min() == pytest.approx(0.5 * step / 2)
+
+
+def test_cellwise_element_count_follows_h_inside_the_cells():
+    """Smooth h: the node sum (predicted_element_count). One node far finer than its neighbours (a
+    gap below the grid step): the node sum counts that h over a whole cell, orders of magnitude too
+    many; the cellwise count follows the multilinear h (checked against 16^3 samples per cell)."""
+    from scipy import ndimage
+
+    n, box = 12, (1.0, 1.0, 1.0)
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1)
+    smooth = 0.05 + 0.01 * np.sin(2 * np.pi * X[..., 0])
+    assert cellwise_element_count(smooth, box) == pytest.approx(float(predicted_element_count(smooth, box)), rel=1e-9)
+    d = X - 0.5
+    h = 0.001 + 0.3 * np.linalg.norm(d - np.round(d), axis=-1)
+    fine = (np.arange(16 * n) + 0.5) / 16  # cell midpoints of a 16x finer grid, in node units
+    coords = np.stack(np.meshgrid(fine, fine, fine, indexing="ij")).reshape(3, -1)
+    brute = 6 * np.sqrt(2) * np.mean(ndimage.map_coordinates(h, coords, order=1, mode="grid-wrap") ** -3.0)
+    node_sum = float(predicted_element_count(h, box))
+    assert node_sum > 30 * brute
+    assert cellwise_element_count(h, box) == pytest.approx(brute, rel=0.3)
 
 
 def test_gap_narrowness_size(two_spheres):
