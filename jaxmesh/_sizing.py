@@ -450,18 +450,26 @@ def cellwise_element_count(h: np.ndarray, box: Sequence[float], steep: float = 1
     h = np.asarray(h, dtype=float)
     d = h.ndim
     bits = list(itertools.product((0, 1), repeat=d))
-    corners = np.stack([np.roll(h, tuple(-b for b in bit), axis=tuple(range(d))) for bit in bits], axis=-1)
-    corners = corners.reshape(-1, len(bits))
-    density = (corners ** -float(d)).mean(axis=1)
-    sharp = np.flatnonzero(corners.max(axis=1) > steep * corners.min(axis=1))
+
+    def corner(bit):  # (cells,) h at this corner of every cell (cell i spans nodes i .. i + 1)
+        return np.roll(h, tuple(-b for b in bit), axis=tuple(range(d))).ravel()
+
+    density, lo, hi = np.zeros(h.size), np.full(h.size, np.inf), np.zeros(h.size)
+    for bit in bits:  # one corner at a time: no (cells, 2^d) array for the whole grid
+        c = corner(bit)
+        density += c ** -float(d) / len(bits)
+        np.minimum(lo, c, out=lo)
+        np.maximum(hi, c, out=hi)
+    sharp = np.flatnonzero(hi > steep * lo)
     if sharp.size:
+        corners = np.stack([corner(bit)[sharp] for bit in bits], axis=-1)
         t = (np.arange(samples) + 0.5) / samples
         pts = np.stack(np.meshgrid(*[t] * d, indexing="ij"), axis=-1).reshape(-1, d)
         weights = np.prod([np.where(np.asarray(bit)[None, :] == 1, pts[:, [k]], 1 - pts[:, [k]])
                            for k, bit in enumerate(np.asarray(bits).T)], axis=0)  # (samples^d, 2^d)
-        for lo in range(0, sharp.size, 1 << 14):
-            chunk = sharp[lo:lo + (1 << 14)]
-            density[chunk] = ((corners[chunk] @ weights.T) ** -float(d)).mean(axis=1)
+        for start in range(0, sharp.size, 1 << 14):
+            rows = slice(start, start + (1 << 14))
+            density[sharp[rows]] = ((corners[rows] @ weights.T) ** -float(d)).mean(axis=1)
     return float(_SIMPLEX_DENSITY[d] * math.prod(box) * density.mean())
 
 # ----------------------------------------------------------------------------- size field
