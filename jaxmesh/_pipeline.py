@@ -201,7 +201,9 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
         h_jax = float(config.h)
         h_np = lambda p: np.full(len(p), float(config.h))  # noqa: E731
         t = stage("size", t, f"uniform h = {config.h:g}")
-        _check_element_budget(config, _SIMPLEX_DENSITY_3D * math.prod(ms.box) / config.h**3, config.h)
+        from ._sizing import _SIMPLEX_DENSITY
+
+        _check_element_budget(config, _SIMPLEX_DENSITY[3] * math.prod(ms.box) / config.h**3, config.h)
     else:
         from ._sizing import SizeParams, cellwise_element_count, size_function
 
@@ -235,7 +237,6 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
 # `predicted_element_count`, which the cellwise count matches where h varies little within a cell);
 # the boundary layers and the grading add to the regular-simplex count
 _TETS_PER_PREDICTED = 2.5
-_SIMPLEX_DENSITY_3D = 6.0 * math.sqrt(2.0)
 
 
 def _check_element_budget(config: MeshConfig, predicted: float, h_min: float) -> None:

@@ -442,10 +442,10 @@ def cellwise_element_count(h: np.ndarray, box: Sequence[float], steep: float = 1
     """c_d * integral of h^-d with h multilinear in each periodic grid cell (NumPy, not differentiable).
 
     `predicted_element_count` weighs each node's h^-d by a whole cell: where a gap far below the grid
-    step sets h at one node, that overcounts by orders of magnitude (a 24^3 grid, h 0.0008 at one node
-    and 0.0125 at its neighbours: 3e6 predicted, 84k made). Cells whose corner sizes differ by more
-    than `steep` times are sampled at samples^d midpoints instead; smooth cells use the mean of their
-    corners (the node mean, up to the order of summation).
+    step sets h at one node, that overcounts by orders of magnitude (see the test with one fine node
+    in a graded field). Cells whose corner sizes differ by more than `steep` times are sampled at
+    samples^d midpoints instead; smooth cells use the mean of their corners (the node mean, up to the
+    order of summation).
     """
     h = np.asarray(h, dtype=float)
     d = h.ndim
