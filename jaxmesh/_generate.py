@@ -633,9 +633,10 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
     The field has covariance exp(-r^2 / (2 l^2)) (l = correlation_length), made by filtering white
     noise with the square root of its spectral density in Fourier space, so it is exactly periodic.
     Inclusions are {field < u}, u the quantile giving `volume_fraction` of the nodes, less specks the
-    grid does not resolve (fewer than 8 nodes or under 1.5 steps thick: the mesher refuses them) and
-    the smaller of two components less than a quarter step apart (the mesher refuses 0.02 steps as
-    touching, and would refine such gaps far), so the fraction comes out slightly below. phi is the
+    grid does not resolve (fewer than 8 nodes or under 1.5 steps thick: the mesher refuses them), those
+    with a neck narrower than a grid step (refused too), and the smaller of two components less than a
+    quarter step apart (the mesher refuses 0.02 steps as touching, and would refine such gaps far), so
+    the fraction comes out slightly below. phi is the
     field divided by its gradient norm at nodes next to the interface (a first-order distance),
     extended elsewhere by the periodic Euclidean distance transform to those nodes.
 
@@ -669,34 +670,50 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
     inside = (g < 0) & ~specks
     phi = _first_order_distance(g, inside, h) if specks.any() else phi
     for _ in range(_MAX_DROP_ROUNDS):
-        touching = _touching_components(phi, box)
-        if not touching.any():
+        refused = _refused_components(phi, box)
+        if not refused.any():
             return phi
-        inside &= ~touching
+        inside &= ~refused
         phi = _first_order_distance(g, inside, h)
-    raise RuntimeError(f"excursion_set: components still touching after {_MAX_DROP_ROUNDS} rounds")  # pragma: no cover
+    raise RuntimeError(f"excursion_set: components still refused after {_MAX_DROP_ROUNDS} rounds")  # pragma: no cover
 
 
 _MAX_DROP_ROUNDS = 6
 _SEPARATION_STEPS = 0.25  # closest components kept, in grid steps
 
 
-def _touching_components(phi: np.ndarray, box) -> np.ndarray:
-    """(grid) bool: nodes of the smaller component of each pair closer than _SEPARATION_STEPS, by
-    the estimate with which Microstructure.from_levelset refuses touching ones (`close_pairs`)."""
-    from .geometry._components import close_pairs, label_components
+def _refused_components(phi: np.ndarray, box) -> np.ndarray:
+    """(grid) bool: nodes of the components Microstructure.from_levelset would refuse, by its own
+    estimates: those with a neck below one grid step, and the smaller of each pair closer than
+    _SEPARATION_STEPS."""
+    from .geometry._components import label_components
     from .geometry._microstructure import Microstructure
 
-    ms = Microstructure.from_levelset(phi, tuple(box), check_gaps=False)
-    labels, n = label_components(phi < 0, True)
-    spacing = np.asarray(box) / np.asarray(phi.shape)
+    ms = Microstructure.from_levelset(phi, tuple(box), check_gaps=False, check_necks=False)
+    labels, n = label_components(phi < 0, True)  # the same ids as ms.inclusions
+    return (_touching_ids(ms, labels, n) | _necked_ids(ms, n))[labels]
+
+
+def _touching_ids(ms, labels: np.ndarray, n: int) -> np.ndarray:
+    """(n + 1,) bool: the smaller of each pair of components closer than _SEPARATION_STEPS, by the
+    loader's estimate (`close_pairs`)."""
+    from .geometry._components import close_pairs
+
+    spacing = np.asarray(ms.box) / np.asarray(labels.shape)
     ids, _, _ = close_pairs(ms.dn1, ms.dn2, ms.nearest_id, labels, spacing, _SEPARATION_STEPS * spacing.min(),
                             True, limit=n)
     counts = np.bincount(labels.ravel(), minlength=n + 1)
     drop = np.zeros(n + 1, bool)
     for a, b in ids:
         drop[a if b == 0 or counts[a] <= counts[b] else b] = True
-    return drop[labels]
+    return drop
+
+
+def _necked_ids(ms, n: int) -> np.ndarray:
+    """(n + 1,) bool: the components with a neck below one grid step (found by the loader)."""
+    drop = np.zeros(n + 1, bool)
+    drop[[inc.id for inc in ms.inclusions if "neck_steps" in inc.description]] = True
+    return drop
 
 
 def _unresolved_components(phi: np.ndarray) -> np.ndarray:

@@ -152,6 +152,50 @@ def test_a_matrix_node_shared_by_two_inclusions_does_not_pull_the_farther_one():
     assert ms.nearest_id[node] == 2 and ms.dn2[node] == pytest.approx(0.96 * h, abs=0.02 * h)
 
 
+def _dumbbell(n, d, rod_radius_steps, rod_end=0.7):
+    """Two balls (r = 0.12) at x = 0.3 and 0.7 joined by a rod along x, axis off the grid lines."""
+    h = 1 / n
+    X = nodes(n, d)
+    axis = np.array([0.5 + 0.3 * h, 0.5 + 0.2 * h][: d - 1])
+    rel = X[..., 1:] - axis
+    rel -= np.round(rel)
+    rod = np.maximum(np.linalg.norm(rel, axis=-1) - rod_radius_steps * h,
+                     np.maximum(0.3 - X[..., 0], X[..., 0] - rod_end))
+    centre = lambda x: [x, *axis]  # noqa: E731
+    balls = np.minimum(ball(X, centre(0.3), 0.12), ball(X, centre(0.7), 0.12))
+    return np.minimum(balls, rod) if rod_end > 0.7 - 0.12 else np.minimum(ball(X, centre(0.3), 0.12), rod)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_levelset_neck_below_a_grid_step_is_refused_with_its_place(d):
+    """A rod 0.9-1.2 steps across between two balls is a neck the grid does not resolve (the
+    surfaces pinch it: an l = 3 steps excursion set meshed into two pieces there); 1.6 steps load."""
+    with pytest.raises(ValueError, match=r"at least 1 grid step wide .* inclusion 1 narrows to 0\.\d\d steps "
+                                         r"near x = \(0\.[3-6]\d*, 0\.5"):
+        Microstructure.from_levelset(_dumbbell(32, d, 0.6 if d == 3 else 0.45))
+    ms = Microstructure.from_levelset(_dumbbell(32, d, 0.6 if d == 3 else 0.45), check_necks=False)
+    assert len(ms.inclusions) == 1 and ms.inclusions[0].description["neck_steps"] < 1.0
+    ms = Microstructure.from_levelset(_dumbbell(32, d, 0.8))
+    assert len(ms.inclusions) == 1 and "neck_steps" not in ms.inclusions[0].description
+
+
+def test_levelset_thin_tip_is_not_a_neck():
+    # the same rod from one ball into the matrix joins nothing
+    ms = Microstructure.from_levelset(_dumbbell(32, 3, 0.6, rod_end=0.55))
+    assert len(ms.inclusions) == 1 and "neck_steps" not in ms.inclusions[0].description
+
+
+def test_labels_joined_by_a_one_voxel_line_are_refused():
+    lab = np.zeros((32, 32, 32), int)
+    lab[6:14, 12:20, 12:20] = 1
+    lab[18:26, 12:20, 12:20] = 1
+    lab[14:18, 16, 16] = 1
+    with pytest.raises(ValueError, match=r"inclusion 1 \(label 1\) narrows to"):
+        Microstructure.from_labels(lab)
+    lab[14:18, 16:18, 16:18] = 1  # a bar two voxels across
+    assert len(Microstructure.from_labels(lab).inclusions) == 1
+
+
 def test_labels_touching_along_an_edge_or_a_corner_still_load():
     # the smoothed voxel level sets keep such pairs apart
     for second in (np.s_[14:20, 14:20, 8:14], np.s_[14:20, 14:20, 14:20]):

@@ -295,19 +295,11 @@ def crossing_bounds(field: np.ndarray, own: np.ndarray, full) -> tuple[np.ndarra
     return lo, hi
 
 
-def chord_thickness(field: np.ndarray, own: np.ndarray) -> float:
-    """Thickness of a component in grid steps: the largest, over its nodes, of the shortest of the
-    axis-parallel chords through the node (chord ends at the linear zero crossings). Window axes
-    are treated as periodic; a chord with no outside node is infinite."""
-    if not own.any():
-        return 0.0
-    crop = []  # the component's bounding box plus one outside layer: the same chords, fewer nodes
-    for k in range(own.ndim):
-        hit = np.flatnonzero(own.any(axis=tuple(j for j in range(own.ndim) if j != k)))
-        inner = hit[0] >= 1 and hit[-1] <= own.shape[k] - 2
-        crop.append(slice(hit[0] - 1, hit[-1] + 2) if inner else slice(None))
-    field, own = field[tuple(crop)], own[tuple(crop)]
-    best = np.full(own.shape, np.inf)
+def axis_chords(field: np.ndarray, own: np.ndarray) -> np.ndarray:
+    """(d, *shape) length in grid steps of the axis-parallel chord of `own` through each node along
+    each axis (chord ends at the linear zero crossings of `field`); inf where the line has no outside
+    node. Axes are treated as periodic (a window has an outside layer along its other axes)."""
+    out = []
     for k in range(own.ndim):
         m = np.moveaxis(own, k, -1)
         v = np.moveaxis(field, k, -1)
@@ -327,9 +319,64 @@ def chord_thickness(field: np.ndarray, own: np.ndarray) -> float:
         vp, v1, v2, ve = at(pn), at(pn + 1), at(en - 1), at(en)
         lo = pn + 1 - np.clip(v1 / np.minimum(v1 - vp, -1e-300), 0.0, 1.0)
         hi = en - 1 + np.clip(v2 / np.minimum(v2 - ve, -1e-300), 0.0, 1.0)
-        chord = np.where(closed, hi - lo, np.inf)
-        best = np.minimum(best, np.moveaxis(chord, -1, k))
-    return float(best[own].max()) if own.any() else 0.0
+        out.append(np.moveaxis(np.where(closed, hi - lo, np.inf), -1, k))
+    return np.stack(out)
+
+
+def chord_thickness(field: np.ndarray, own: np.ndarray) -> float:
+    """Thickness of a component in grid steps: the largest, over its nodes, of the shortest of the
+    axis-parallel chords through the node (:func:`axis_chords`). Window axes are treated as periodic;
+    a chord with no outside node is infinite."""
+    if not own.any():
+        return 0.0
+    crop = []  # the component's bounding box plus one outside layer: the same chords, fewer nodes
+    for k in range(own.ndim):
+        hit = np.flatnonzero(own.any(axis=tuple(j for j in range(own.ndim) if j != k)))
+        inner = hit[0] >= 1 and hit[-1] <= own.shape[k] - 2
+        crop.append(slice(hit[0] - 1, hit[-1] + 2) if inner else slice(None))
+    field, own = field[tuple(crop)], own[tuple(crop)]
+    return float(axis_chords(field, own).min(axis=0)[own].max())
+
+
+def necks(field: np.ndarray, labels: np.ndarray, max_chord: float) -> list[tuple[int, tuple, float]]:
+    """Necks thinner than max_chord grid steps, which no mesh at the grid's resolution can follow.
+
+    A node is thin when its chords (:func:`axis_chords`) are below max_chord across d - 1 axes (a
+    filament in 3D, a strip in 2D). A cluster of thin nodes is a neck when it joins two pieces of its
+    component that stay apart without the thin nodes, each of at least _MIN_SAMPLES nodes (a thin
+    tip or ridge joins nothing). Arrays are treated as periodic along every axis.
+
+    Args:
+        field: (*shape) level set, negative inside. labels: (*shape) component ids, 0 outside.
+    Returns:
+        per necked component (ascending id): (id, index of its neck's thinnest node, that chord).
+    """
+    own = labels > 0
+    chords = np.sort(axis_chords(field, own), axis=0)[field.ndim - 2]
+    thin = own & (chords < max_chord)
+    if not thin.any():
+        return []
+    rest, m = label_components(own & ~thin, True)
+    resolved = np.bincount(rest.ravel(), minlength=m + 1) >= _MIN_SAMPLES
+    resolved[0] = False
+    piece = np.where(resolved[rest], rest, 0)
+    clusters, _ = label_components(thin, True)
+    touch = []  # (thin cluster, resolved piece) face neighbours
+    for k in range(field.ndim):
+        for step in (1, -1):
+            other = np.roll(piece, step, k)
+            at = thin & (other > 0)
+            touch.append(np.stack([clusters[at], other[at]], axis=1))
+    touch = np.unique(np.concatenate(touch), axis=0)
+    cl, n_pieces = np.unique(touch[:, 0], return_counts=True)
+    found = {}
+    for c in cl[n_pieces >= 2]:
+        nodes = np.flatnonzero((clusters == c).ravel())
+        best = nodes[np.argmin(chords.ravel()[nodes])]
+        cid = int(labels.ravel()[best])
+        if cid not in found or chords.ravel()[best] < found[cid][2]:
+            found[cid] = (cid, np.unravel_index(best, field.shape), float(chords.ravel()[best]))
+    return [found[c] for c in sorted(found)]
 
 
 def repeated_end_axes(values: np.ndarray) -> list[int]:
@@ -460,6 +507,7 @@ def accumulate(dn1, dn2, nearest, cid: int, indices, values) -> None:
 # ---- validation of raw inputs (NumPy only: runs before anything is traced) ----
 
 _MIN_SAMPLES, _MIN_THICKNESS = 8, 1.5  # a resolved feature: >= 8 nodes and >= 1.5 steps thick
+_NECK_STEPS = 1.0  # a neck narrower than a grid step across d - 1 axes is below the grid's resolution
 # grid inputs: inclusions closer than this (in steps) touch at the grid's resolution (the estimate
 # below is itself good to a fraction of a step only; the size function would refine such a gap far)
 _MIN_GAP_STEPS = 0.02
@@ -603,6 +651,16 @@ def size_errors(stats, descriptions) -> str:
             f"{_MIN_THICKNESS} grid steps thick), got {len(bad)} smaller: " + "; ".join(bad[:10])
             + ". Hint: sample the field on a finer grid, or remove the specks "
             "(e.g. skimage.morphology.remove_small_objects).")
+
+
+def neck_errors(found, where: str) -> str:
+    """The error for necks found in the inputs ((inclusion name, x, chord in steps) each)."""
+    listed = [f"{name} narrows to {chord:.2f} steps near x = {tuple(round(float(v), 4) for v in x)}"
+              for name, x, chord in found[:6]]
+    return (f"{where} expected every inclusion at least {_NECK_STEPS:g} grid step wide wherever it narrows, got "
+            f"{len(found)} with a thinner neck (below the grid's resolution: no mesh can follow it): "
+            + "; ".join(listed) + ". Hint: sample the field on a finer grid, smooth it, or cut the inclusion "
+            "in two at the neck.")
 
 
 def check_function_args(phi_fns, box, grid_shape, volumes, descriptions):

@@ -354,7 +354,7 @@ class Microstructure:
 
     @classmethod
     def from_levelset(cls, values, box=None, periodic=True, order="cubic", *, reach=None,
-                      check_gaps: bool = True) -> Microstructure:
+                      check_gaps: bool = True, check_necks: bool = True) -> Microstructure:
         """Inclusions = periodic connected components of {phi < 0} of one global field.
 
         Args:
@@ -367,9 +367,12 @@ class Microstructure:
             reach: distance up to which dn1/dn2 are exact; None: everywhere if affordable.
             check_gaps: refuse inclusions less than 0.02 grid step apart (touching at the grid's
                 resolution: the size function would refine the gap down to its floor).
+            check_necks: refuse inclusions that narrow below one grid step between two resolved
+                parts (a filament in 3D, a strip in 2D: the surfaces cannot follow it).
 
         Returns:
-            The Microstructure; each inclusion's description holds n_samples and thickness (steps).
+            The Microstructure; each inclusion's description holds n_samples and thickness (steps),
+            and neck_steps (the narrowest neck's width) when it has a neck below one step.
         """
         v = check_field(values, "from_levelset")
         shape = v.shape
@@ -424,7 +427,7 @@ class Microstructure:
             windows.append(win)
         descriptions = [{"kind": "levelset", "scale": float(scale)} for _ in range(n)]
         return cls._from_windows(box, periodic, order, labels, (starts, lengths), windows, fields, r,
-                                 descriptions, "from_levelset", check_gaps)
+                                 descriptions, "from_levelset", check_gaps, check_necks)
 
     @classmethod
     def from_labels(cls, labels, box=None, periodic=True, *, reach=None) -> Microstructure:
@@ -486,7 +489,7 @@ class Microstructure:
 
     @classmethod
     def _from_windows(cls, box, periodic, order, labels, arcs, windows, fields, r, descriptions, where: str,
-                      check_gaps: bool = True):
+                      check_gaps: bool = True, check_necks: bool = True):
         """Shared tail of from_levelset / from_labels: size and gap checks, dn1/dn2, bounds, JAX phi_fns.
         labels: (grid) component ids; arcs: (starts, lengths) (N, d); fields: window level sets."""
         shape, (starts, lengths) = labels.shape, arcs
@@ -496,6 +499,15 @@ class Microstructure:
         errors = size_errors(stats, descriptions)
         if errors:
             raise ValueError(errors)
+        found = []
+        for c, (win, W, own) in enumerate(zip(windows, fields, owns), start=1):
+            for _, node, chord in comp.necks(W, own.astype(np.int32), comp._NECK_STEPS):
+                label = descriptions[c - 1].get("label")
+                name = f"inclusion {c}" + (f" (label {label})" if label is not None else "")
+                found.append((name, ((win.origin + node) % shape) * spacing, chord))
+                descriptions[c - 1] = dict(descriptions[c - 1], neck_steps=chord)
+        if check_necks and found:
+            raise ValueError(comp.neck_errors(found, where))
         dn1, dn2, nearest = _new_dn(shape)
         for c, (win, W) in enumerate(zip(windows, fields), start=1):
             fo, fs = comp.reach_frame(starts[c - 1], lengths[c - 1], shape, periodic, r)
