@@ -66,6 +66,11 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         gen.write_input(args.output, None, box, grid_shape, phi=phi)
         _progress("generate", f"excursion set on {grid_shape} grid, node fraction {float((phi < 0).mean()):.4f} "
                               f"-> {args.output}", t0)
+        spanning = gen.spanning_components(phi)
+        if spanning:
+            print(f"    note: inclusion(s) {spanning[:10]} reach their own periodic image (the set percolates): "
+                  "`jaxmesh mesh` refuses them on its conforming path; lower --volume-fraction, or mesh with "
+                  "--backend tetwild", flush=True)
         return 0
     shape = args.kind
     if args.dim == 2:

@@ -716,6 +716,16 @@ def _necked_ids(ms, n: int) -> np.ndarray:
     return drop
 
 
+def spanning_components(phi: np.ndarray) -> list[int]:
+    """Ids (as Microstructure.from_levelset numbers them) of the periodic components of phi < 0 whose
+    nodes cover a whole axis: they reach their own periodic image (percolate)."""
+    from .geometry._components import component_arcs, label_components
+
+    labels, n = label_components(phi < 0, True)
+    _, lengths = component_arcs(labels, n, True)
+    return [int(i) + 1 for i in np.flatnonzero((lengths >= np.asarray(phi.shape)).any(axis=1))]
+
+
 def _unresolved_components(phi: np.ndarray) -> np.ndarray:
     """(grid) bool: nodes of the periodic components of phi < 0 that Microstructure.from_levelset
     refuses as unresolved (fewer than _MIN_SAMPLES nodes or thinner than _MIN_THICKNESS steps)."""

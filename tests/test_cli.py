@@ -1,6 +1,7 @@
 """The command line, end to end through main(argv)."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -113,3 +114,21 @@ def test_cli_keeps_compilations_for_the_next_run(tmp_path):
         run = subprocess.run(cli + args, env=env, capture_output=True, text=True, timeout=600)
         assert run.returncode == 0, run.stderr
     assert len(list(cache.iterdir())) > 5  # one entry per compiled kernel
+
+
+def test_generate_grf_names_the_inclusions_that_percolate(tmp_path, capsys):
+    """The conforming mesher refuses an inclusion that reaches its own periodic image: generate says so."""
+    from jaxmesh import load_input
+
+    def generate(fraction):
+        out = tmp_path / f"g{fraction}.npz"
+        assert main(["generate", str(out), "--dim", "2", "--kind", "grf", "--volume-fraction", str(fraction),
+                     "--correlation-length", "0.08", "--grid", "64", "--seed", "1"]) == 0
+        return out, capsys.readouterr().out
+
+    out, text = generate(0.7)
+    listed = re.search(r"inclusion\(s\) \[([\d, ]+)\] reach their own periodic image", text)
+    assert listed is not None
+    spanning = [inc.id for inc in load_input(out).inclusions if (np.asarray(inc.upper) - inc.lower >= 0.999).any()]
+    assert [int(i) for i in listed.group(1).split(",")] == spanning
+    assert "periodic image" not in generate(0.2)[1]
