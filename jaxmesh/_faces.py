@@ -313,10 +313,17 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
     tri, _ = improve_by_flips(uv, tri, seg)
     uv, tri = _refine_face(uv, tri, seg, nf, h2, box2, config.face_min_angle)
     lat = uv[nf:]
-    if missing_segments(tri, seg, len(uv)).any():
-        raise MeshingError("faces", f"face {axis}: constrained segments missing from the face triangulation (interface "
-                           "traces cross: an inclusion surface folds where the mesh size exceeds its features; "
-                           "a smaller iis / h_max, or a smoother field, resolves them)")
+    missing = missing_segments(tri, seg, len(uv))
+    if missing.any():
+        ends = face[seg[missing].ravel()]  # trace nodes are face nodes (local index < nf)
+        ids = sorted({int(reg.inclusion[i]) for i in ends} - {0})
+        x = tuple(round(float(v), 4) for v in P[ends[0]])
+        whose = f"inclusions {ids}" if len(ids) > 1 else "the inclusion"
+        raise MeshingError("faces", f"face {axis}: a trace of {whose} near x = {x} loses "
+                           f"{int(missing.sum())} segment(s) in the face triangulation (interface traces cross or "
+                           "touch: an inclusion surface folds, or crosses the box plane at a saddle, where the mesh "
+                           "size exceeds its features; a smaller iis / h_max, or a smoother field, resolves them)",
+                           ids[0] if len(ids) == 1 else None)
     ncomp, comp = flood_fill(tri, seg, len(uv))
     cen = uv[tri].mean(axis=1)
     c3 = np.zeros((len(tri), 3))

@@ -539,3 +539,30 @@ def test_from_functions_centre_on_the_box_boundary(center):
     n_inside = int(np.sum(ms.dn1 < 0))
     expected = 4.0 / 3.0 * np.pi * 0.2**3 * 24**3
     assert abs(n_inside - expected) < 0.1 * expected
+
+
+@pytest.mark.parametrize("shape, box", [((32, 32, 32), (1.0, 1.0, 1.0)), ((40, 24, 16), (1.0, 0.6, 0.5)),
+                                        ((64, 48), (1.0, 0.75))])
+def test_function_bounds_coarse_to_fine_search_finds_every_negative_node(shape, box):
+    """Against every node of [-L, 2L)^d: small inclusions between lattice nodes, in the box, beyond it."""
+    from jaxmesh.geometry._components import chord_thickness, crossing_bounds
+    from jaxmesh.geometry._microstructure import _grid_points, evaluate, function_bounds
+    from jaxmesh.geometry._shapes import ellipsoid_sdf, sphere_sdf
+
+    d = len(shape)
+    spacing = np.asarray(box) / np.asarray(shape)
+    rng = np.random.default_rng(len(shape) * shape[0])
+    full = [np.arange(-n, 2 * n) for n in shape]
+    pts = _grid_points(full, spacing)
+    for k in range(6):
+        centre = rng.uniform(-0.9, 1.9, d) * np.asarray(box)
+        r = (1.2 + 3 * rng.random()) * spacing.max()
+        f = sphere_sdf(centre, r) if k % 2 else ellipsoid_sdf(centre, np.array([1.6, 1.0, 0.7][:d]) * r)
+        lower, upper, count, thick = function_bounds(f, k, shape, spacing)
+        vals = evaluate(f, pts).reshape([len(a) for a in full])
+        own = vals < 0
+        lo, hi = crossing_bounds(vals, own, [False] * d)
+        assert count == own.sum()
+        np.testing.assert_allclose(lower, (lo - np.asarray(shape)) * spacing, atol=1e-12)
+        np.testing.assert_allclose(upper, (hi - np.asarray(shape)) * spacing, atol=1e-12)
+        assert thick == pytest.approx(chord_thickness(vals, own), abs=1e-12)

@@ -139,28 +139,39 @@ def _grid_points(axes, spacing) -> np.ndarray:
     return np.stack(mesh, axis=-1).reshape(-1, len(axes))
 
 
+_LATTICE_MARGIN = 0.6  # of a lattice cell's diagonal (0.5 is exact for a signed distance)
+
+
 def function_bounds(f: Callable, i: int, shape, spacing):
-    """Bounds of {f < 0} sampled on the grid nodes of [-L, 2L)^d: coarse first (stride ~n/16,
-    candidates f < coarse cell diagonal), then every node around the candidates.
+    """Bounds of {f < 0} sampled on the grid nodes of [-L, 2L)^d, searched coarse to fine: on a
+    lattice of stride ~n/4, then of stride ~n/16 around its candidates, then every node around
+    those. A node where f < 0 is within half a lattice cell's diagonal of a lattice node, where f is
+    then below that half diagonal (f a signed distance: 1-Lipschitz); candidates are the lattice
+    nodes below 0.6 diagonal (a margin for near-distances), so no negative node is missed.
 
     Returns:
         lower, upper (d,) unwrapped, the number of negative nodes and the thickness in steps.
     """
     n = np.asarray(shape)
-    s = np.maximum(1, n // 16)
-    coarse = [np.arange(-nk, 2 * nk, sk) for nk, sk in zip(n, s)]
-    vals = evaluate(f, _grid_points(coarse, spacing), name=f"phi_fns[{i}]").reshape([len(a) for a in coarse])
-    cand = vals < (0.0 if (s == 1).all() else float(np.linalg.norm(s * spacing)))
-    if not cand.any():
-        raise ValueError(
-            f"from_functions expected phi_fns[{i}] to be negative somewhere on the grid, got min "
-            f"{vals.min():.4g} on the nodes of [-L, 2L)^d. Hint: negative inside; an inclusion must span "
-            "grid nodes (refine grid_shape)."
-        )
-    fine = []
-    for k in range(len(n)):
-        hit = np.flatnonzero(cand.any(axis=tuple(j for j in range(len(n)) if j != k)))
-        fine.append(np.arange(coarse[k][hit[0]] - s[k] - 1, coarse[k][hit[-1]] + s[k] + 2))
+    spacing = np.asarray(spacing, float)
+    ranges = [(-nk, 2 * nk) for nk in n]  # node index ranges [start, stop) searched per axis
+    for divisor in (4, 16):
+        s = np.maximum(1, n // divisor)
+        axes = [np.arange(a - (a % sk), b, sk) for (a, b), sk in zip(ranges, s)]  # nodes of stride s
+        vals = evaluate(f, _grid_points(axes, spacing), name=f"phi_fns[{i}]").reshape([len(a) for a in axes])
+        cand = vals < (0.0 if (s == 1).all() else _LATTICE_MARGIN * float(np.linalg.norm(s * spacing)))
+        if not cand.any():
+            raise ValueError(
+                f"from_functions expected phi_fns[{i}] to be negative somewhere on the grid, got min "
+                f"{vals.min():.4g} on the nodes of [-L, 2L)^d. Hint: negative inside; an inclusion must span "
+                "grid nodes (refine grid_shape)."
+            )
+        reach = s // 2 + 2  # a negative node lies within s / 2 of a candidate, plus one outside node
+        ranges = []
+        for k in range(len(n)):
+            hit = np.flatnonzero(cand.any(axis=tuple(j for j in range(len(n)) if j != k)))
+            ranges.append((axes[k][hit[0]] - reach[k], axes[k][hit[-1]] + reach[k] + 1))
+    fine = [np.arange(a, b) for a, b in ranges]
     vals = evaluate(f, _grid_points(fine, spacing), name=f"phi_fns[{i}]").reshape([len(a) for a in fine])
     own = vals < 0
     if not own.any():
