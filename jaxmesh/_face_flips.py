@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._quality import cross3
 from ._surface_mesh import BOX_FACE, INTERFACE, SurfaceMesh
 
 
 def _angle_at(apex: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
     u, v = p - apex, q - apex
-    cross = np.linalg.norm(np.cross(u, v), axis=-1) if u.shape[1] == 3 else np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])
+    cross = np.linalg.norm(cross3(u, v), axis=-1) if u.shape[1] == 3 else np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0])
     return np.arctan2(cross, np.einsum("ij,ij->i", u, v))
 
 
@@ -29,7 +30,7 @@ def _signed_area(uv: np.ndarray, tris: np.ndarray) -> np.ndarray:
 
 def _normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
     a, b, c = points[tris[:, 0]], points[tris[:, 1]], points[tris[:, 2]]
-    return np.cross(b - a, c - a)
+    return cross3(b - a, c - a)
 
 
 def lawson_flips(points: np.ndarray, tris: np.ndarray, region: np.ndarray, *, max_rounds: int = 200,

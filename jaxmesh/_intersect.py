@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._quality import cross3
+
 
 def _orient3d(a, b, c, d):
-    return np.einsum("ij,ij->i", b - a, np.cross(c - a, d - a))
+    return np.einsum("ij,ij->i", b - a, cross3(c - a, d - a))
 
 
 def _segment_crosses_triangle(p, q, a, b, c, eps):
@@ -114,8 +116,8 @@ def intersecting_pairs(points: np.ndarray, tris: np.ndarray, *, rel_eps: float =
     edge = np.linalg.norm(points[tris[:, 1]] - points[tris[:, 0]], axis=1).mean()
     eps = rel_eps * edge**3
     P, Q = points[A], points[B]
-    nP = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
-    nQ = np.cross(Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0])
+    nP = cross3(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+    nQ = cross3(Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0])
     hit = np.zeros(len(pr), bool)
     # disjoint pairs: any edge crossing the other triangle, or coplanar overlap
     m = shared == 0

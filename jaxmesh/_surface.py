@@ -21,7 +21,7 @@ from skimage.measure import marching_cubes
 
 from ._errors import MeshingError
 from ._periodic import minimum_image
-from ._quality import min_angles
+from ._quality import cross3, min_angles
 from ._surface_ops import (
     collapse_edges,
     cut_plane,
@@ -234,7 +234,7 @@ def extract(phi_fn, lower, upper, step: float, box):
 def enclosed_volume(points: np.ndarray, tris: np.ndarray) -> float:
     """Divergence-theorem volume of a closed oriented triangle set (positive for outward normals)."""
     p = points[tris]
-    return float(np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6.0)
+    return float(np.einsum("ij,ij->i", p[:, 0], cross3(p[:, 1], p[:, 2])).sum() / 6.0)
 
 
 def _relax(points, tris, on_plane, phi_fn, h_fn, box, truss: TrussConfig, cut: bool, newton_steps: int):
@@ -269,7 +269,7 @@ def _relax(points, tris, on_plane, phi_fn, h_fn, box, truss: TrussConfig, cut: b
 def folded(points, tris, phi_fn) -> np.ndarray:
     """(t,) bool: triangles whose normal opposes the level-set gradient at their centroid (folds)."""
     p = points[tris]
-    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    nrm = cross3(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     g = level_set_gradient(phi_fn, p.mean(axis=1))
     return np.einsum("ij,ij->i", nrm, g) <= 0
 

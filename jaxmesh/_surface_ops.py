@@ -11,7 +11,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ._quality import cell_quality
+from ._quality import cell_quality, cross3
 
 
 def half_edges(tris: np.ndarray, n: int):
@@ -84,7 +84,7 @@ def refine(points: np.ndarray, tris: np.ndarray, split: np.ndarray):
 
 
 def _normals(p):
-    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    nrm = cross3(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     return nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
 
 

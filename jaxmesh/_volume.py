@@ -21,7 +21,7 @@ from scipy.spatial import Delaunay, cKDTree
 
 from ._errors import MeshingError
 from ._mesh import Mesh, classify_facets, facet_table
-from ._quality import signed_volumes
+from ._quality import cross3, signed_volumes
 from ._face_flips import delaunay_box_faces, delaunay_interfaces
 from ._surface_mesh import OUTSIDE, SurfaceMesh
 from ._volume_recover import (
@@ -320,7 +320,7 @@ def label_cells(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh) -> 
         t = tri[has]
         apex = cells[c].sum(axis=1) - t.sum(axis=1)  # the tet's vertex that is not on the triangle
         x = points
-        side = np.einsum("ij,ij->i", np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]]), x[apex] - x[t[:, 0]])
+        side = np.einsum("ij,ij->i", cross3(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]]), x[apex] - x[t[:, 0]])
         region = np.where(side > 0, surface.sides[has, 1], surface.sides[has, 0])
         votes.append(np.stack([comp[c], region], 1))
     votes = np.concatenate(votes)

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ._errors import MeshingError
+from ._quality import cross3
 from ._surface_mesh import INTERFACE, SurfaceMesh
 
 __all__ = [
@@ -130,10 +131,10 @@ def _circumballs(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Smallest circumscribed balls of triangles P (k, 3, 3): centres (k, 3), radii (k,)."""
     a, b, c = P[:, 0], P[:, 1], P[:, 2]
     u, v = b - a, c - a
-    w = np.cross(u, v)
+    w = cross3(u, v)
     ww = np.maximum(np.einsum("ij,ij->i", w, w), np.finfo(float).tiny)
-    cen = a + (np.cross(w, u) * np.einsum("ij,ij->i", v, v)[:, None]
-               + np.cross(v, w) * np.einsum("ij,ij->i", u, u)[:, None]) / (2.0 * ww[:, None])
+    cen = a + (cross3(w, u) * np.einsum("ij,ij->i", v, v)[:, None]
+               + cross3(v, w) * np.einsum("ij,ij->i", u, u)[:, None]) / (2.0 * ww[:, None])
     return cen, np.linalg.norm(cen - a, axis=1)
 
 
