@@ -143,8 +143,10 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
 
     t = time.perf_counter()
     ms = _as_microstructure(source, box=box, periodic=config.periodic)
-    if not ms.periodic:
-        raise ValueError("expected a periodic microstructure; hint: the non-periodic mode is not available yet")
+    if not ms.periodic and not (ms.dim == 3 and config.backend == "tetwild"):
+        raise ValueError("the conforming mesher expected a periodic microstructure, got periodic=False; hint: "
+                         "mesh a non-periodic 3D field with backend 'tetwild' (--backend tetwild: valid, but not "
+                         "conforming), or sample a periodic cell")
     _check_sizes_against_box(config, ms.box)
     t = stage("input", t, f"{ms.dim}D, {len(ms.inclusions)} inclusions, grid {tuple(ms.grid_shape)}")
 

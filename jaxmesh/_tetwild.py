@@ -25,13 +25,14 @@ _BOX_TRIANGLES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5]
                            [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
 
 
-def levelset_surface(values: np.ndarray, box) -> tuple[np.ndarray, np.ndarray]:
-    """Triangles of phi = 0 over [0, L]^3 from a periodic grid (sample i at x = i L / n), normals
-    towards phi > 0; open where an inclusion is cut by the box. Empty when phi keeps one sign."""
+def levelset_surface(values: np.ndarray, box, periodic: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles of phi = 0 over [0, L]^3 from a grid (sample i at x = i L / n), normals towards
+    phi > 0; open where an inclusion is cut by the box. Empty when phi keeps one sign. The layer at
+    x = L repeats the one at x = 0 (periodic) or the last one (not periodic)."""
     values = np.asarray(values, dtype=float)
     if values.min() >= 0 or values.max() <= 0:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
-    grid = np.pad(values, [(0, 1)] * 3, mode="wrap")  # the layer at x = L repeats the one at x = 0
+    grid = np.pad(values, [(0, 1)] * 3, mode="wrap" if periodic else "edge")
     spacing = tuple(float(L) / n for L, n in zip(box, values.shape))
     grid = np.where(grid == 0.0, 1e-12 * min(spacing), grid)  # no vertex exactly on a grid node
     verts, faces, _, _ = marching_cubes(grid, 0.0, spacing=spacing, allow_degenerate=False)
@@ -52,7 +53,7 @@ def tetwild_mesh(microstructure, h: float, *, epsilon: float = 1e-3) -> Mesh:
     except ImportError as err:  # pragma: no cover - a declared dependency
         raise MeshingError("volume", "the tetwild backend needs pytetwild (pip install pytetwild)") from err
     box = np.asarray(microstructure.box, dtype=float)
-    sv, sf = levelset_surface(np.asarray(microstructure.dn1), box)
+    sv, sf = levelset_surface(np.asarray(microstructure.dn1), box, microstructure.periodic)
     corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=float) * box
     points = np.vstack([sv, corners])
     tris = np.vstack([sf, _BOX_TRIANGLES + len(sv)]).astype(np.int32)

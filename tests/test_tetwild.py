@@ -63,3 +63,27 @@ def test_backend_is_validated():
     ms2 = Microstructure.from_functions([sphere_sdf(jnp.array([0.5, 0.5]), 0.2)], (1.0, 1.0), (32, 32))
     with pytest.raises(ValueError, match="3D inputs only"):
         mesh_rve(ms2, MeshConfig(backend="tetwild"))
+
+
+def test_non_periodic_field_meshes_with_tetwild_only(tmp_path):
+    """A field that is not periodic (a sphere cut by x = 0 whose other half is not at x = 1): the
+    conforming mesher refuses it with a pointer to tetwild, which meshes it without a wrapped copy."""
+    n = 24
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1)
+    phi = np.linalg.norm(X - np.array([0.05, 0.5, 0.5]), axis=-1) - 0.3
+    with pytest.raises(ValueError, match="periodic"):
+        Microstructure.from_levelset(phi)
+    ms = Microstructure.from_levelset(phi, periodic=False)
+    with pytest.raises(ValueError, match="tetwild"):
+        mesh_rve(ms, MeshConfig(periodic=False))
+    v, _ = levelset_surface(np.asarray(ms.dn1), ms.box, periodic=False)
+    assert v[:, 0].max() < 0.4  # no copy of the cap near x = 1
+    mesh = mesh_rve(ms, MeshConfig(backend="tetwild", h=0.1, periodic=False))
+    failed = {name for name, check in mesh.metadata["validation"]["checks"].items() if not check["passed"]}
+    assert not mesh.periodic and failed <= {"interface", "boundary", "volume"}
+    p = mesh.points[mesh.cells]
+    vol = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6
+    # the part of the ball inside the box: a ball less the cap beyond x = 0 (height 0.25)
+    assert vol[mesh.inclusion_id == 1].sum() == pytest.approx(4 / 3 * np.pi * 0.3**3 - np.pi * 0.25**2 * (0.9 - 0.25) / 3,
+                                                              rel=0.06)
