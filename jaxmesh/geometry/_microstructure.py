@@ -469,7 +469,9 @@ class Microstructure:
                 raise ValueError(
                     f"from_labels expected separated inclusions, got {len(pairs)} pairs of different labels "
                     f"sharing a grid face ({listed}). Hint: leave at least one matrix (0) voxel between "
-                    "inclusions."
+                    "inclusions; a region that crosses the periodic box must carry one label on both sides "
+                    "(scipy.ndimage.label does not wrap: pass labels > 0, a bool image, to have it labelled "
+                    "periodically)."
                 )
             first = np.zeros(n + 1, dtype=lab.dtype)
             first[comps.ravel()] = lab.ravel()
