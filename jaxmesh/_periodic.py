@@ -75,6 +75,22 @@ def points_near(points, centres, radii, box, periodic: bool = True) -> list[np.n
     return [np.sort(np.asarray(f, dtype=np.int64)) for f in found]
 
 
+def nearest_centres(points, centres, box, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Minimum-image distances (m, k) from each point to its k nearest centres and their indices.
+
+    NumPy only (scipy's periodic k-d tree). k is capped at the number of centres.
+    """
+    from scipy.spatial import cKDTree
+
+    box = np.asarray(box, dtype=float)
+    points, centres = wrap(np.asarray(points, dtype=float), box), wrap(np.asarray(centres, dtype=float), box)
+    points = np.where(points >= box, points - box, points)  # wrap can round up to L itself
+    centres = np.where(centres >= box, centres - box, centres)
+    k = min(int(k), len(centres))
+    dist, idx = cKDTree(centres, boxsize=box).query(points, k=k)
+    return dist.reshape(len(points), k), idx.reshape(len(points), k)
+
+
 def wrap_index(index, n):
     """Periodic grid index wrap (integer arrays, NumPy or JAX)."""
     return index % n

@@ -283,6 +283,23 @@ def test_bad_inputs_raise_value_error(kwargs, match):
 # ---------------------------------------------------------------------------------- level sets
 
 
+def test_sample_levelset_exact_where_the_nearest_centres_are_not_the_nearest_surface():
+    """A large sphere ringed by 14 small ones: near its surface the 8 nearest centres are small
+    spheres, so their bound is loose there; the exact pass must still find the large one."""
+    box, shape = (1.0, 1.2, 0.9), (20, 24, 18)
+    big = InclusionSpec("sphere", np.array([0.5, 0.6, 0.45]), np.full(3, 0.3), np.eye(3))
+    rng = np.random.default_rng(3)
+    small = [InclusionSpec("sphere", big.center + 0.36 * u / np.linalg.norm(u), np.full(3, 0.03), np.eye(3))
+             for u in rng.normal(size=(14, 3))]
+    phi = sample_levelset([big, *small], box, shape)
+    x = np.stack(np.meshgrid(*[np.arange(n) * L / n for n, L in zip(shape, box)], indexing="ij"), -1)
+    brute = np.full(shape, np.inf)
+    for s in [big, *small]:
+        for t in image_shifts(3, np.asarray(box)):
+            brute = np.minimum(brute, gen._spec_sdf_np(s, (x - t).reshape(-1, 3)).reshape(shape))
+    np.testing.assert_allclose(phi, brute, atol=1e-12)
+
+
 def test_sample_levelset_exact_periodic_dn1():
     box, shape = (1.0, 1.0, 1.0), (16, 16, 16)
     spec = InclusionSpec("sphere", np.array([0.05, 0.5, 0.5]), np.full(3, 0.2), np.eye(3))
