@@ -155,8 +155,8 @@ def function_bounds(f: Callable, i: int, shape, spacing):
     n = np.asarray(shape)
     spacing = np.asarray(spacing, float)
     ranges = [(-nk, 2 * nk) for nk in n]  # node index ranges [start, stop) searched per axis
-    for divisor in (4, 16):
-        s = np.maximum(1, n // divisor)
+    strides = [np.maximum(1, n // 4), np.maximum(1, n // 16), np.ones_like(n)]
+    for s, s_next in zip(strides[:-1], strides[1:]):
         axes = [np.arange(a - (a % sk), b, sk) for (a, b), sk in zip(ranges, s)]  # nodes of stride s
         vals = evaluate(f, _grid_points(axes, spacing), name=f"phi_fns[{i}]").reshape([len(a) for a in axes])
         cand = vals < (0.0 if (s == 1).all() else _LATTICE_MARGIN * float(np.linalg.norm(s * spacing)))
@@ -166,7 +166,8 @@ def function_bounds(f: Callable, i: int, shape, spacing):
                 f"{vals.min():.4g} on the nodes of [-L, 2L)^d. Hint: negative inside; an inclusion must span "
                 "grid nodes (refine grid_shape)."
             )
-        reach = s // 2 + 2  # a negative node lies within s / 2 of a candidate, plus one outside node
+        # a negative node lies within s / 2 of a candidate; the next lattice brackets it, one node beyond
+        reach = s // 2 + s_next + 1
         ranges = []
         for k in range(len(n)):
             hit = np.flatnonzero(cand.any(axis=tuple(j for j in range(len(n)) if j != k)))
