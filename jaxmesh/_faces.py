@@ -322,7 +322,9 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
         raise MeshingError("faces", f"face {axis}: a trace of {whose} near x = {x} loses "
                            f"{int(missing.sum())} segment(s) in the face triangulation (interface traces cross or "
                            "touch: an inclusion surface folds, or crosses the box plane at a saddle, where the mesh "
-                           "size exceeds its features; a smaller iis / h_max, or a smoother field, resolves them)",
+                           "size exceeds its features; a smaller iis / h_max, a smoother field, or the periodic field "
+                           "shifted by a few grid steps (numpy.roll) so that the box planes cut it elsewhere, resolves "
+                           "them)",
                            ids[0] if len(ids) == 1 else None)
     ncomp, comp = flood_fill(tri, seg, len(uv))
     cen = uv[tri].mean(axis=1)
