@@ -15,7 +15,7 @@ TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 
 def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Cross product of (..., 3) arrays, the same arithmetic as np.cross without its per-call
-    overhead (moveaxis and axis checks: ~20 us, which the per-inclusion loops pay thousands of times)."""
+    overhead (moveaxis and axis checks), which the per-inclusion loops would pay thousands of times."""
     return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
 

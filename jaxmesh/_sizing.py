@@ -437,7 +437,6 @@ def predicted_element_count(h: Float[ArrayLike, "..."], box: Sequence[float]) ->
     return _SIMPLEX_DENSITY[h.ndim] * math.prod(box) * jnp.mean(h ** (-h.ndim))
 
 
-
 def cellwise_element_count(h: np.ndarray, box: Sequence[float], steep: float = 1.5, samples: int = 4) -> float:
     """c_d * integral of h^-d with h multilinear in each periodic grid cell (NumPy, not differentiable).
 
@@ -471,6 +470,7 @@ def cellwise_element_count(h: np.ndarray, box: Sequence[float], steep: float = 1
             rows = slice(start, start + (1 << 14))
             density[sharp[rows]] = ((corners[rows] @ weights.T) ** -float(d)).mean(axis=1)
     return float(_SIMPLEX_DENSITY[d] * math.prod(box) * density.mean())
+
 
 # ----------------------------------------------------------------------------- size field
 class SizeField(eqx.Module):
