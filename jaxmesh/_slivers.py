@@ -131,7 +131,7 @@ def _circumcentres_p(p: np.ndarray) -> np.ndarray:
 
 
 def smooth_vertices(points: np.ndarray, cells: np.ndarray, free: np.ndarray, sweeps: int = 4,
-                    seed: int = 0) -> tuple[np.ndarray, int]:
+                    seed: int = 0, slide=None) -> tuple[np.ndarray, int]:
     """Move free vertices to raise the worst and the mean quality of their stars (fixed topology).
 
     Per vertex the candidates are its neighbours' centroid, the volume-weighted circumcentre of its
@@ -140,8 +140,14 @@ def smooth_vertices(points: np.ndarray, cells: np.ndarray, free: np.ndarray, swe
     drop and every tet stays positive. Sets of vertices that share no tet move together
     (`colour_classes`).
 
+    With `slide` (a `_surface_slide.SurfaceSlide`) its surface nodes move too: candidates are taken
+    in their tangent planes, a move must also keep their surface triangles' angles
+    (`SurfaceSlide.keeps_triangles`), and after each sweep the moved ones are projected back onto
+    their level set (`SurfaceSlide.project`, which undoes what the projection would invert).
+
     Args:
         points: (n, 3); cells: (m, 4) positive tets; free: (n,) bool movable vertices; sweeps: passes.
+        slide: optional SurfaceSlide (surface nodes that may slide on their level set).
     Returns:
         (new points, number of accepted moves).
     """
@@ -154,13 +160,17 @@ def smooth_vertices(points: np.ndarray, cells: np.ndarray, free: np.ndarray, swe
     neighbours = both[np.argsort(both[:, 0], kind="stable"), 1]  # vertex -> neighbours, CSR like _stars
     deg = np.bincount(both[:, 0], minlength=n)
     nb_off = np.concatenate([[0], np.cumsum(deg)])
+    movable = free if slide is None else free | slide.mask
     moves = 0
     for sweep in range(sweeps):
+        before = points.copy() if slide is not None else None
         accepted = 0
-        for verts in colour_classes(edges, free & (deg > 0), seed + sweep):
-            accepted += _smooth_class(points, cells, by, off, neighbours, nb_off, verts)
+        for verts in colour_classes(edges, movable & (deg > 0), seed + sweep):
+            accepted += _smooth_class(points, cells, by, off, neighbours, nb_off, verts, slide)
+        if slide is not None:
+            accepted -= slide.project(points, before, cells, by, off)
         moves += accepted
-        if accepted == 0:
+        if accepted <= 0:
             break
     return points, moves
 
@@ -191,7 +201,7 @@ TAU, W = 0.4, 0.2
 WORST_STEPS, MEAN_STEPS = (0.3, 0.03), (0.1, 0.03, 0.01)
 
 
-def _smooth_class(points, cells, by, off, neighbours, nb_off, verts) -> int:
+def _smooth_class(points, cells, by, off, neighbours, nb_off, verts, slide=None) -> int:
     k = len(verts)
     rows, owner = _star_rows(by, off, verts)
     local = np.argmax(cells[rows] == verts[owner][:, None], axis=1)
@@ -240,10 +250,15 @@ def _smooth_class(points, cells, by, off, neighbours, nb_off, verts) -> int:
     gm /= np.maximum(np.linalg.norm(gm, axis=1), 1e-300)[:, None]
     for step in MEAN_STEPS:
         cands.append(x0 + step * scale[:, None] * gm)
+    sliding = None if slide is None else slide.tangent_frame(points, verts)
     for x in cands:
+        if sliding is not None:
+            x = sliding.to_tangent_plane(x0, x)
         qmin, qmean, _ = _star_eval(fixed, opposite, owner, starts, x)
         better = (qmin > 0) & (np.minimum(qmin, TAU) >= np.minimum(best_min, TAU)) & (
             W * np.minimum(qmin, TAU) + qmean > W * np.minimum(best_min, TAU) + best_mean + 1e-9)
+        if sliding is not None and better.any():
+            better &= sliding.keeps_triangles(x)
         best_min = np.where(better, qmin, best_min)
         best_mean = np.where(better, qmean, best_mean)
         best_x[better] = x[better]

@@ -5,6 +5,7 @@ retriangulation and ball-vertex springs (VolumeConfig.truss). JAX enters through
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 
@@ -15,6 +16,7 @@ from ._mesh import Mesh
 from ._quality import cell_quality
 from ._slivers import improve_topology, insert_steiner, min_dihedral, smooth_vertices
 from ._surface_mesh import SurfaceMesh
+from ._surface_slide import SurfaceSlide
 from ._truss import TrussConfig, make_constraints, relax
 from ._volume import VolumeConfig, _check_h, _make_mesh, conforming_delaunay, delaunay_tets
 from ._volume_recover import distance_to_surface, triangle_keys
@@ -49,10 +51,12 @@ def _truss_config(config: VolumeConfig) -> TrussConfig | None:
 
 def relax_volume(mesh: Mesh, surface: SurfaceMesh, h_fn: Callable, config: VolumeConfig = VolumeConfig(), *,
                  h_jax_fn: Callable | None = None, project_fn: Callable | None = None,
-                 return_surface: bool = False):
+                 phi_fn: Callable | None = None, return_surface: bool = False):
     """Improve the interior of a conforming mesh and remove slivers; the surface stays exact.
 
-    Surface nodes (the first surface.n_points nodes of the mesh) are fixed. With a truss in config
+    Surface nodes (the first surface.n_points nodes of the mesh) are fixed, except that with phi_fn
+    (the global level set) and config.slide_surface the interface nodes slide on it while the
+    quality is optimised (`remove_slivers`; the surface keeps its triangles). With a truss in config
     the interior nodes are relaxed first: each retriangulation is a Delaunay that must contain every
     surface triangle, otherwise the previous topology is kept, and a conforming Delaunay of the moved
     nodes is rebuilt (recovery as in `conforming_delaunay`). Then `remove_slivers` runs (flips and
@@ -64,6 +68,7 @@ def relax_volume(mesh: Mesh, surface: SurfaceMesh, h_fn: Callable, config: Volum
         config: VolumeConfig (truss, ball_vertex_stiffness, sliver_angle, sliver_passes).
         h_jax_fn: JAX size function for the truss (default `grid_size_fn(h_fn, box)`).
         project_fn: projection of split interface midpoints if recovery must split.
+        phi_fn: NumPy global level set points (k, 3) -> (k,), for the sliding interface nodes.
         return_surface: also return the SurfaceMesh kept (refined if recovery split edges).
     Returns:
         Mesh with metadata['volume'] updated (relaxation stop reason, sliver counts, quality).
@@ -113,7 +118,7 @@ def relax_volume(mesh: Mesh, surface: SurfaceMesh, h_fn: Callable, config: Volum
         vinfo.update({f"relax_recovery_{k}": v for k, v in rinfo.items()})
     meta["times"]["relax"] = time.perf_counter() - t0
     t1 = time.perf_counter()
-    points, cells, surface, sinfo = remove_slivers(points, cells, surface, config)
+    points, cells, surface, sinfo = remove_slivers(points, cells, surface, config, phi_fn=phi_fn)
     vinfo.update(sinfo)
     meta["times"]["slivers"] = time.perf_counter() - t1
     out = _make_mesh(points, cells, surface, meta)
@@ -130,13 +135,15 @@ def _face_keys(cells: np.ndarray, n: int) -> np.ndarray:
 
 def optimise_mesh(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, rounds: int = 5,
                   threshold: float = 0.7, free: np.ndarray | None = None,
-                  min_gain: float = 1e-3, local: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
+                  min_gain: float = 1e-3, local: bool = False,
+                  slide: SurfaceSlide | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Rounds of flips (`improve_topology`) then smoothing of the interior nodes (`smooth_vertices`),
     until a round raises the mean quality by less than min_gain.
 
     Flips first: the conforming Delaunay's slivers are mostly fixed by edge removals, and smoothing
-    then works on a better topology. Surface triangles and surface nodes never change. With `local`
-    the flips too stay at tets with a `free` vertex (the clean-up around Steiner points).
+    then works on a better topology. Surface triangles never change; surface nodes move only with
+    `slide` (interface nodes sliding on their level set). With `local` the flips too stay at tets
+    with a `free` vertex (the clean-up around Steiner points).
     """
     if free is None:
         free = np.arange(len(points)) >= surface.n_points
@@ -145,7 +152,7 @@ def optimise_mesh(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, r
     mean = cell_quality(points, cells).mean()
     for rnd in range(rounds):
         cells, flipped = improve_topology(points, cells, protected, threshold, passes=2, near=free if local else None)
-        points, moved = smooth_vertices(points, cells, free, sweeps=2, seed=rnd)
+        points, moved = smooth_vertices(points, cells, free, sweeps=2, seed=rnd, slide=slide)
         info["opt_flips"] += flipped
         info["opt_moves"] += moved
         info["opt_rounds"] += 1
@@ -156,22 +163,29 @@ def optimise_mesh(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, r
 
 
 def remove_slivers(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh,
-                   config: VolumeConfig = VolumeConfig()):
-    """Quality optimisation (`optimise_mesh`: flips and smoothing), then up to config.sliver_passes
+                   config: VolumeConfig = VolumeConfig(), phi_fn: Callable | None = None):
+    """Quality optimisation (`optimise_mesh`: flips and smoothing; with phi_fn and config.slide_surface
+    the interface nodes slide on that level set, `SurfaceSlide`), then up to config.sliver_passes
     rounds for the slivers left (dihedral angle below config.sliver_angle): Steiner points in local
     cavities that keep the surface (`insert_steiner`), optimised again near them. Slivers stay where
     thin surface triangles force them: every tet on a surface triangle with a small angle is flat.
 
     Returns:
-        (points, cells, the SurfaceMesh (unchanged), info {'slivers_before', 'slivers_after', 'inserted',
-        'opt_flips', 'opt_moves'}).
+        (points, cells, the SurfaceMesh (its interface nodes where they slid), info {'slivers_before',
+        'slivers_after', 'inserted', 'opt_flips', 'opt_moves', 'slid'}).
     """
     angle = config.sliver_angle
     info = {"slivers_before": int((min_dihedral(points, cells) < angle).sum()), "inserted": 0, "opt_flips": 0,
             "opt_moves": 0, "opt_rounds": 0}
     free = np.arange(len(points)) >= surface.n_points
+    slide = None
+    if phi_fn is not None and config.slide_surface:
+        slide = SurfaceSlide(points, surface.triangles, surface.node_inclusion, surface.box, phi_fn)
+    first = points[: surface.n_points].copy()
     for rnd in range(config.sliver_passes + 1):
-        points, cells, oinfo = optimise_mesh(points, cells, surface, free=free, local=rnd > 0)
+        # the interface nodes slide in the global pass only; the Steiner clean-ups stay local
+        points, cells, oinfo = optimise_mesh(points, cells, surface, free=free, local=rnd > 0,
+                                             slide=slide if rnd == 0 else None)
         for k, v in oinfo.items():
             info[k] += v
         bad = np.flatnonzero(min_dihedral(points, cells) < angle)
@@ -187,4 +201,8 @@ def remove_slivers(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh,
         free[cells[near].ravel()] = True
         free[: surface.n_points] = False
     info["slivers_after"] = int((min_dihedral(points, cells) < angle).sum())
+    slid = np.any(points[: surface.n_points] != first, axis=1)
+    info["slid"] = int(slid.sum())
+    if slid.any():
+        surface = dataclasses.replace(surface, points=points[: surface.n_points].copy())
     return points, cells, surface, info

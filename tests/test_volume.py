@@ -499,3 +499,63 @@ def test_cut_spheres_from_surface_stage(spheres):
     assert s2.n_triangles >= s.n_triangles
     rep = validate(mesh, ms)
     assert rep.ok, rep.summary()
+
+
+# ----------------------------------------------------------------------------- interface nodes sliding on their level set
+@pytest.fixture(scope="module")
+def slid_case(sphere_case):
+    from jaxmesh._volume_relax import relax_volume
+
+    _, s2, before, spheres = sphere_case
+    ms = sphere_microstructure(spheres)
+    fixed = relax_volume(before, s2, _h, VolumeConfig())
+    slid, s3 = relax_volume(before, s2, _h, VolumeConfig(), phi_fn=ms.phi, return_surface=True)
+    return s2, s3, fixed, slid, ms
+
+
+def test_sliding_keeps_interface_nodes_on_the_level_set_and_box_nodes_fixed(slid_case):
+    s2, s3, _, slid, ms = slid_case
+    iface = s2.node_inclusion > 0
+    moved = np.any(s3.points != s2.points, axis=1)
+    assert slid.metadata["volume"]["slid"] == moved.sum() > 0.5 * iface.sum()
+    assert not moved[~iface].any()
+    np.testing.assert_array_equal(slid.points[: s2.n_points], s3.points)
+    assert np.abs(ms.phi(s3.points[iface])).max() < 1e-12
+    np.testing.assert_array_equal(s3.triangles, s2.triangles)
+    assert _present(s3, slid)
+    rep = validate(slid, ms)
+    assert rep.ok, rep.summary()
+
+
+def test_sliding_raises_the_quality_and_keeps_the_surface_angles(slid_case):
+    from jaxmesh._quality import min_angles
+    from jaxmesh._slivers import min_dihedral
+    from jaxmesh._surface_slide import MIN_ANGLE
+
+    s2, s3, fixed, slid, _ = slid_case
+    q_fixed, q_slid = cell_quality(fixed.points, fixed.cells), cell_quality(slid.points, slid.cells)
+    assert q_slid.mean() > q_fixed.mean() and np.mean(q_slid < 0.3) <= np.mean(q_fixed < 0.3)
+    assert min_dihedral(slid.points, slid.cells).min() >= 10.0
+    iface = s2.kind == INTERFACE
+    a0, a1 = min_angles(s2.points, s2.triangles[iface]), min_angles(s3.points, s3.triangles[iface])
+    assert a1.min() >= min(a0.min(), MIN_ANGLE) - 1e-9
+
+
+def test_projection_undoes_a_move_that_inverts_a_tet_and_keeps_a_small_one(sphere_case):
+    from jaxmesh._slivers import _stars
+    from jaxmesh._surface_slide import SurfaceSlide
+
+    _, s2, before, spheres = sphere_case
+    ms = sphere_microstructure(spheres)
+    points, cells = before.points.copy(), before.cells
+    slide = SurfaceSlide(points, s2.triangles, s2.node_inclusion, s2.box, ms.phi)
+    by, off = _stars(cells, len(points))
+    u, v = np.flatnonzero(slide.mask)[:2]
+    start = points.copy()
+    for node, length, undone in ((u, 3 * H, 1), (v, 0.05 * H, 0)):
+        tangent = np.cross(slide.normals[node], [1.0, 0.0, 0.0])
+        points[node] += length * tangent / np.linalg.norm(tangent)
+        assert slide.project(points, start, cells, by, off) >= undone
+        assert np.array_equal(points[node], start[node]) == bool(undone)
+        assert abs(ms.phi(points[node : node + 1])[0]) < 1e-12
+        assert signed_volumes(points, cells).min() > 0

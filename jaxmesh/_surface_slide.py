@@ -1,0 +1,165 @@
+"""Interface nodes that slide on their level set while the volume mesh is smoothed (paper 4.7).
+
+NumPy only. The smoothing (`_slivers.smooth_vertices`) takes its candidates for these nodes in
+their tangent planes and asks `keeps_triangles` whether their surface triangles stay well shaped;
+after each sweep `project` puts the moved nodes back on the level set by Newton steps along their
+normals and undoes any move that the projection would leave with a non-positive tet. The surface
+triangles never change, only where their interface vertices sit on the level set: the mesh stays
+conforming. Nodes on a box plane (traces, box faces) stay fixed, so periodicity is untouched.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from ._mesh import on_box_planes
+from ._quality import cross3
+from ._slivers import _star_rows
+
+__all__ = ["SurfaceSlide"]
+
+# A move may not take a surface triangle's smallest angle below min(its angle now, MIN_ANGLE).
+MIN_ANGLE = 30.0
+# Newton steps of the projection, and |phi| it must reach (times the box's longest side).
+NEWTON_STEPS, PHI_TOL = 8, 1e-13
+
+
+class SurfaceSlide:
+    """The interface nodes of a surface mesh that may slide on the level set phi_fn = 0.
+
+    Args:
+        points: (n, 3) mesh points (the surface nodes first).
+        triangles: (t, 3) surface triangles. node_inclusion: (ns,) inclusion of each surface node (0: none).
+        box: box lengths. phi_fn: NumPy global level set points (k, 3) -> (k,) (negative inside).
+    Attributes:
+        mask: (n,) bool, the sliding nodes (interface nodes on no box plane).
+    """
+
+    def __init__(self, points: np.ndarray, triangles: np.ndarray, node_inclusion: np.ndarray, box,
+                 phi_fn: Callable):
+        n, ns = len(points), len(node_inclusion)
+        box = np.asarray(box, dtype=float)
+        self.mask = np.zeros(n, bool)
+        self.mask[:ns] = (np.asarray(node_inclusion) > 0) & ~on_box_planes(points[:ns], box).any(axis=(1, 2))
+        self.phi_fn = phi_fn
+        self.tol = PHI_TOL * float(box.max())
+        self.triangles = np.asarray(triangles, dtype=np.int64)
+        flat = self.triangles.ravel()
+        order = np.argsort(flat, kind="stable")  # node -> its surface triangles, CSR
+        self._tri_of = order // 3
+        self._tri_off = np.concatenate([[0], np.cumsum(np.bincount(flat, minlength=n))])
+        self.normals = np.zeros((n, 3))  # unit gradients of phi at the first positions
+        self.grad_norm = np.ones(n)
+        self._refresh(points, np.flatnonzero(self.mask))
+
+    def _refresh(self, points: np.ndarray, nodes: np.ndarray) -> None:
+        if not len(nodes):
+            return
+        x = points[nodes]
+        eps = 1e-7 * max(float(np.abs(x).max()), 1.0)
+        g = np.stack([(self._phi(x + eps * e) - self._phi(x - eps * e)) / (2 * eps) for e in np.eye(3)], axis=1)
+        norm = np.linalg.norm(g, axis=1)
+        ok = norm > 0
+        self.normals[nodes] = np.where(ok[:, None], g / np.where(ok, norm, 1.0)[:, None], 0.0)
+        self.grad_norm[nodes] = np.where(ok, norm, 1.0)
+        self.mask[nodes[~ok]] = False  # no normal (a kink of the field): keep the node where it is
+
+    def _phi(self, x: np.ndarray) -> np.ndarray:
+        return np.asarray(self.phi_fn(x), dtype=float).reshape(-1)
+
+    def tangent_frame(self, points: np.ndarray, verts: np.ndarray) -> _Frame | None:
+        """The sliding part of one colour class of the smoothing, or None when it has none."""
+        sliding = self.mask[verts]
+        if not sliding.any():
+            return None
+        return _Frame(self, points, verts, sliding)
+
+    def project(self, points: np.ndarray, before: np.ndarray, cells: np.ndarray, by: np.ndarray,
+                off: np.ndarray) -> int:
+        """Put the sliding nodes moved since `before` back on the level set, in place.
+
+        Only the tets around them change shape; where one is no longer positive, the moves of its
+        vertices (any vertex) are undone, until every tet is positive again. by, off: vertex ->
+        tets CSR of cells. The normals are those of the first positions (they turn by about the
+        curvature times the moves, which the secant steps absorb). Returns the number of moves undone.
+        """
+        moved = np.flatnonzero(self.mask & np.any(points != before, axis=1))
+        if not len(moved):
+            return 0
+        x0, n = points[moved], self.normals[moved]
+        t, phi = _secant_roots(lambda t: self._phi(x0 + t[:, None] * n), self._phi(x0), self.grad_norm[moved],
+                               self.tol)
+        off_set = np.abs(phi) > self.tol
+        points[moved] = np.where(off_set[:, None], before[moved], x0 + t[:, None] * n)
+        undone = int(off_set.sum())
+        check = moved
+        while len(check):
+            tets = np.unique(_star_rows(by, off, check)[0])
+            p = points[cells[tets]]
+            six_v = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], cross3(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
+            lmax = np.max(np.linalg.norm(p[:, [1, 2, 3, 2, 3, 3]] - p[:, [0, 0, 0, 1, 1, 2]], axis=-1), axis=1)
+            back = np.unique(cells[tets[six_v <= 1e-9 * lmax**3]].ravel())
+            back = back[np.any(points[back] != before[back], axis=1)]
+            points[back] = before[back]
+            undone += len(back)
+            check = back
+        return undone
+
+
+def _secant_roots(f: Callable, f0: np.ndarray, slope: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Roots near 0 of k line functions f(t) (k,) -> (k,), f(0) = f0, by the secant method, the
+    first step with the given slope. Returns (t, f(t)); rows that do not reach |f| <= tol in
+    NEWTON_STEPS keep their last iterate."""
+    t_prev, f_prev = np.zeros_like(f0), f0
+    t = -f0 / slope
+    f_t = f(t)
+    for _ in range(NEWTON_STEPS):
+        if np.abs(f_t).max(initial=0.0) <= tol:
+            break
+        df = f_t - f_prev
+        step = np.where((np.abs(f_t) > tol) & (df != 0), f_t * (t - t_prev) / np.where(df != 0, df, 1.0), 0.0)
+        t_prev, f_prev = t, f_t
+        t = t - step
+        f_t = f(t)
+    return t, f_t
+
+
+class _Frame:
+    """Tangent planes and surface-triangle guard of the sliding vertices of one colour class."""
+
+    def __init__(self, slide: SurfaceSlide, points: np.ndarray, verts: np.ndarray, sliding: np.ndarray):
+        self.normals = np.where(sliding[:, None], slide.normals[verts], 0.0)  # 0: moves freely
+        rows = np.flatnonzero(sliding)
+        counts = slide._tri_off[verts[rows] + 1] - slide._tri_off[verts[rows]]
+        self.owner = np.repeat(rows, counts)
+        start = np.repeat(slide._tri_off[verts[rows]] - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
+        tris = slide.triangles[slide._tri_of[start + np.arange(counts.sum())]]
+        local = np.argmax(tris == verts[self.owner][:, None], axis=1)
+        self.b = points[tris[np.arange(len(tris)), (local + 1) % 3]]
+        self.c = points[tris[np.arange(len(tris)), (local + 2) % 3]]
+        self.k = len(verts)
+        self.floor = np.minimum(self._min_angles(points[verts]), MIN_ANGLE) - 1e-9
+
+    def to_tangent_plane(self, x0: np.ndarray, x: np.ndarray) -> np.ndarray:
+        d = x - x0
+        return x - np.einsum("ij,ij->i", d, self.normals)[:, None] * self.normals
+
+    def _min_angles(self, x: np.ndarray) -> np.ndarray:
+        """(k,) the smallest angle (degrees) of each vertex's surface triangles with it at x (k, 3)."""
+        out = np.full(self.k, 180.0)
+        if not len(self.owner):
+            return out
+        a = x[self.owner]
+        worst = np.full(len(a), 180.0)
+        for p, u, v in ((a, self.b, self.c), (self.b, self.c, a), (self.c, a, self.b)):
+            e1, e2 = u - p, v - p
+            ang = np.degrees(np.arctan2(np.linalg.norm(cross3(e1, e2), axis=1), np.einsum("ij,ij->i", e1, e2)))
+            worst = np.minimum(worst, ang)
+        np.minimum.at(out, self.owner, worst)
+        return out
+
+    def keeps_triangles(self, x: np.ndarray) -> np.ndarray:
+        """(k,) bool: moving the vertices to x keeps their surface triangles' angles above the floor."""
+        return self._min_angles(x) >= self.floor
