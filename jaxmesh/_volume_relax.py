@@ -134,7 +134,7 @@ def _face_keys(cells: np.ndarray, n: int) -> np.ndarray:
 
 
 def optimise_mesh(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, rounds: int = 5,
-                  threshold: float = 0.7, free: np.ndarray | None = None,
+                  threshold: float = 0.85, free: np.ndarray | None = None,
                   min_gain: float = 1e-3, local: bool = False,
                   slide: SurfaceSlide | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Rounds of flips (`improve_topology`) then smoothing of the interior nodes (`smooth_vertices`),
