@@ -1,8 +1,9 @@
 """Tet quality optimisation and sliver removal (paper 4.7) by local operations that never touch a
-surface triangle or move a surface node. NumPy only.
+surface triangle; surface nodes move only when a `_surface_slide.SurfaceSlide` lets interface nodes
+slide on their level set. NumPy only.
 
-(a) smoothing: interior vertices move to raise the worst and the mean quality of their stars (many
-at once: sets of vertices that share no tet);
+(a) smoothing: interior vertices (and sliding interface nodes, in their tangent planes) move to
+raise the worst and the mean quality of their stars (many at once: sets of vertices that share no tet);
 (b) flips: edge removal (3-2, 4-4, 5-6, 6-8, 7-10) and 2-3 flips whose removed faces are not surface
 triangles, applied when they raise the worst quality of the tets they replace;
 (c) Steiner points: a new interior vertex in a local Delaunay cavity bounded by the surface.

@@ -1,6 +1,7 @@
-"""Volume relaxation (paper 4.7): quality optimisation by flips and smoothing of the interior nodes,
-then sliver removal; optionally first a truss with surface nodes fixed, surface-keeping
-retriangulation and ball-vertex springs (VolumeConfig.truss). JAX enters through the truss only.
+"""Volume relaxation (paper 4.7): quality optimisation by flips and smoothing of the interior nodes
+(and of the interface nodes, sliding on their level set when it is given), then sliver removal;
+optionally first a truss with surface nodes fixed, surface-keeping retriangulation and ball-vertex
+springs (VolumeConfig.truss). JAX enters through the truss only.
 """
 
 from __future__ import annotations
