@@ -240,6 +240,9 @@ def _smooth_class(points, cells, by, off, neighbours, nb_off, verts, slide=None)
             pp = pw.copy()
             pp[np.arange(k), lw, j] += s * eps
             g[:, j] += s * tet_quality(pp)
+    sliding = None if slide is None else slide.tangent_frame(points, verts)
+    if sliding is not None:  # steps along the surface: the gradients' normal parts would be projected away
+        g = sliding.tangential(g)
     g /= np.maximum(np.linalg.norm(g, axis=1), 1e-300)[:, None]
     for step in WORST_STEPS:
         cands.append(x0 + step * scale[:, None] * g)
@@ -248,13 +251,14 @@ def _smooth_class(points, cells, by, off, neighbours, nb_off, verts, slide=None)
         x = x0.copy()
         x[:, j] += eps
         gm[:, j] = _star_eval(fixed, opposite, owner, starts, x)[1] - base_mean
+    if sliding is not None:
+        gm = sliding.tangential(gm)
     gm /= np.maximum(np.linalg.norm(gm, axis=1), 1e-300)[:, None]
     for step in MEAN_STEPS:
         cands.append(x0 + step * scale[:, None] * gm)
-    sliding = None if slide is None else slide.tangent_frame(points, verts)
     for x in cands:
         if sliding is not None:
-            x = sliding.to_tangent_plane(x0, x)
+            x = x0 + sliding.tangential(x - x0)
         qmin, qmean, _ = _star_eval(fixed, opposite, owner, starts, x)
         better = (qmin > 0) & (np.minimum(qmin, TAU) >= np.minimum(best_min, TAU)) & (
             W * np.minimum(qmin, TAU) + qmean > W * np.minimum(best_min, TAU) + best_mean + 1e-9)

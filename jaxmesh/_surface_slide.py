@@ -142,9 +142,9 @@ class _Frame:
         self.k = len(verts)
         self.floor = np.minimum(self._min_angles(points[verts]), MIN_ANGLE) - 1e-9
 
-    def to_tangent_plane(self, x0: np.ndarray, x: np.ndarray) -> np.ndarray:
-        d = x - x0
-        return x - np.einsum("ij,ij->i", d, self.normals)[:, None] * self.normals
+    def tangential(self, v: np.ndarray) -> np.ndarray:
+        """Vectors v (k, 3) without their normal parts at the sliding vertices (others unchanged)."""
+        return v - np.einsum("ij,ij->i", v, self.normals)[:, None] * self.normals
 
     def _min_angles(self, x: np.ndarray) -> np.ndarray:
         """(k,) the smallest angle (degrees) of each vertex's surface triangles with it at x (k, 3)."""
