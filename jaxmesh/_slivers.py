@@ -162,11 +162,12 @@ def smooth_vertices(points: np.ndarray, cells: np.ndarray, free: np.ndarray, swe
     deg = np.bincount(both[:, 0], minlength=n)
     nb_off = np.concatenate([[0], np.cumsum(deg)])
     movable = free if slide is None else free | slide.mask
+    colour_edges = edges if slide is None else slide.contract(edges)
     moves = 0
     for sweep in range(sweeps):
         before = points.copy() if slide is not None else None
         accepted = 0
-        for verts in colour_classes(edges, movable & (deg > 0), seed + sweep):
+        for verts in colour_classes(colour_edges, movable & (deg > 0), seed + sweep):
             accepted += _smooth_class(points, cells, by, off, neighbours, nb_off, verts, slide)
         if slide is not None:
             accepted -= slide.project(points, before, cells, by, off)
@@ -202,12 +203,33 @@ TAU, W = 0.4, 0.2
 WORST_STEPS, MEAN_STEPS = (0.3, 0.03), (0.1, 0.03, 0.01)
 
 
+def _joint_stars(by, off, neighbours, nb_off, points, verts, slide):
+    """Star rows of verts (tet ids, owner index into verts sorted, the vertex that moves in each tet,
+    the shift that brings the tet into the owner's frame or None) and neighbour positions (with
+    owner). A sliding 0-face node's star joins its periodic copy's, shifted by -L e_a."""
+    rows, owner = _star_rows(by, off, verts)
+    nbr, nb_owner = _star_rows(neighbours, nb_off, verts)
+    mover, nb_points = verts[owner], points[nbr]
+    has = np.zeros(0, np.int64) if slide is None else np.flatnonzero(slide.partner[verts] >= 0)
+    if not len(has):
+        return rows, owner, mover, None, nb_points, nb_owner
+    copies = slide.partner[verts[has]]
+    crow, cown = _star_rows(by, off, copies)
+    cnbr, cnb_own = _star_rows(neighbours, nb_off, copies)
+    shift = np.concatenate([np.zeros((len(rows), 3)), slide.shift[verts[has[cown]]]])
+    rows, owner, mover = np.concatenate([rows, crow]), np.concatenate([owner, has[cown]]), np.concatenate([mover, copies[cown]])
+    order = np.argsort(owner, kind="stable")  # `_star_eval` reduces over runs of one owner
+    nb_points = np.concatenate([nb_points, points[cnbr] - slide.shift[verts[has[cnb_own]]]])
+    nb_owner = np.concatenate([nb_owner, has[cnb_own]])
+    return rows[order], owner[order], mover[order], shift[order], nb_points, nb_owner
+
+
 def _smooth_class(points, cells, by, off, neighbours, nb_off, verts, slide=None) -> int:
     k = len(verts)
-    rows, owner = _star_rows(by, off, verts)
-    local = np.argmax(cells[rows] == verts[owner][:, None], axis=1)
+    rows, owner, mover, shift, nb_points, nb_owner = _joint_stars(by, off, neighbours, nb_off, points, verts, slide)
+    local = np.argmax(cells[rows] == mover[:, None], axis=1)
     x0 = points[verts].copy()
-    p0 = points[cells[rows]]
+    p0 = points[cells[rows]] if shift is None else points[cells[rows]] - shift[:, None, :]
     fixed = np.ascontiguousarray(np.transpose(p0[np.arange(len(rows))[:, None], _FIXED_AFTER[local]], (1, 2, 0)))
     face = _cross_rows(fixed[1] - fixed[0], fixed[2] - fixed[0])
     opposite = np.sqrt(_dot_rows(face, face))
@@ -217,13 +239,12 @@ def _smooth_class(points, cells, by, off, neighbours, nb_off, verts, slide=None)
     best_x = x0.copy()
     # worst tet of each star, and a length scale (mean edge length from the vertex)
     at_min = np.flatnonzero(q == best_min[owner])
-    worst = rows[at_min[np.unique(owner[at_min], return_index=True)[1]]]  # first worst row per star
-    nbr, nb_owner = _star_rows(neighbours, nb_off, verts)
+    worst = at_min[np.unique(owner[at_min], return_index=True)[1]]  # first worst row per star
     deg = np.maximum(np.bincount(nb_owner, minlength=k), 1)
-    scale = np.bincount(nb_owner, _norm(points[nbr] - x0[nb_owner]), minlength=k) / deg
+    scale = np.bincount(nb_owner, _norm(nb_points - x0[nb_owner]), minlength=k) / deg
     cands = []
     # neighbours' centroid
-    cands.append(np.stack([np.bincount(nb_owner, points[nbr, j], minlength=k) for j in range(3)], 1) / deg[:, None])
+    cands.append(np.stack([np.bincount(nb_owner, nb_points[:, j], minlength=k) for j in range(3)], 1) / deg[:, None])
     # ODT: volume-weighted circumcentres of the star
     vol = np.abs(_six_volumes(p0))
     cc = _circumcentres_p(p0)
@@ -231,8 +252,7 @@ def _smooth_class(points, cells, by, off, neighbours, nb_off, verts, slide=None)
     odt = np.stack([np.bincount(owner, vol * cc[:, j], minlength=k) for j in range(3)], 1) / np.maximum(w, 1e-300)[:, None]
     cands.append(odt)
     # gradient of the worst tet's quality with respect to the vertex (central differences)
-    pw = points[cells[worst]]
-    lw = np.argmax(cells[worst] == verts[:, None], axis=1)
+    pw, lw = p0[worst], local[worst]
     g = np.zeros((k, 3))
     eps = 1e-4 * scale
     for j in range(3):
@@ -269,6 +289,9 @@ def _smooth_class(points, cells, by, off, neighbours, nb_off, verts, slide=None)
         best_x[better] = x[better]
     moved = np.any(best_x != x0, axis=1)
     points[verts] = best_x
+    if shift is not None:  # the periodic copies follow (in-plane moves: exact translates)
+        has = np.flatnonzero(slide.partner[verts] >= 0)
+        points[slide.partner[verts[has]]] = best_x[has] + slide.shift[verts[has]]
     return int(moved.sum())
 
 

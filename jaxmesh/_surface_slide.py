@@ -1,11 +1,14 @@
-"""Interface nodes that slide on their level set while the volume mesh is smoothed (paper 4.7).
+"""Surface nodes that slide while the volume mesh is smoothed (paper 4.7): interface nodes on their
+level set, box-face nodes in their plane together with their periodic copy.
 
 NumPy only. The smoothing (`_slivers.smooth_vertices`) takes its candidates for these nodes in
-their tangent planes and asks `keeps_triangles` whether their surface triangles stay well shaped;
-after each sweep `project` puts the moved nodes back on the level set by Newton steps along their
-normals and undoes any move that the projection would leave with a non-positive tet. The surface
-triangles never change, only where their interface vertices sit on the level set: the mesh stays
-conforming. Nodes on a box plane (traces, box faces) stay fixed, so periodicity is untouched.
+their tangent planes and asks `keeps_triangles` whether their surface triangles stay well shaped.
+A box-face node on x_a = 0 moves with its translate on x_a = L: the smoothing sees the two stars as
+one (the copy's tets shifted by -L e_a, `partner` and `shift`), so the faces stay exact translates.
+After each sweep `project` puts the moved interface nodes back on the level set by secant steps
+along their normals and undoes any move that the projection would leave with a non-positive tet.
+The surface triangles never change, only where their vertices sit on the level set or the box
+plane: the mesh stays conforming and periodic. Trace, box-edge and corner nodes stay fixed.
 """
 
 from __future__ import annotations
@@ -22,27 +25,48 @@ __all__ = ["SurfaceSlide"]
 
 # A move may not take a surface triangle's smallest angle below min(its angle now, MIN_ANGLE).
 MIN_ANGLE = 30.0
-# Newton steps of the projection, and |phi| it must reach (times the box's longest side).
+# Secant steps of the projection, and |phi| it must reach (times the box's longest side).
 NEWTON_STEPS, PHI_TOL = 8, 1e-13
 
 
 class SurfaceSlide:
-    """The interface nodes of a surface mesh that may slide on the level set phi_fn = 0.
+    """The surface nodes of a periodic surface mesh that may slide during the volume smoothing.
 
     Args:
         points: (n, 3) mesh points (the surface nodes first).
         triangles: (t, 3) surface triangles. node_inclusion: (ns,) inclusion of each surface node (0: none).
         box: box lengths. phi_fn: NumPy global level set points (k, 3) -> (k,) (negative inside).
+        periodic_pairs: axis -> (k, 2) (node on x_a = 0, its translate on x_a = L); the face nodes of
+            those pairs slide too (None: only interface nodes).
     Attributes:
-        mask: (n,) bool, the sliding nodes (interface nodes on no box plane).
+        mask: (n,) bool, the sliding nodes: interface nodes on no box plane, and box-face nodes of the
+            0-faces on one plane only (their copies follow; they are not in the mask).
+        partner: (n,) int64, the copy on x_a = L of a sliding 0-face node, else -1.
+        shift: (n, 3) that copy's position minus the node's (L e_a).
     """
 
     def __init__(self, points: np.ndarray, triangles: np.ndarray, node_inclusion: np.ndarray, box,
-                 phi_fn: Callable):
+                 phi_fn: Callable, periodic_pairs: dict | None = None):
         n, ns = len(points), len(node_inclusion)
         box = np.asarray(box, dtype=float)
+        planes = on_box_planes(points[:ns], box)  # (ns, 3, 2)
         self.mask = np.zeros(n, bool)
-        self.mask[:ns] = (np.asarray(node_inclusion) > 0) & ~on_box_planes(points[:ns], box).any(axis=(1, 2))
+        self.mask[:ns] = (np.asarray(node_inclusion) > 0) & ~planes.any(axis=(1, 2))
+        self.on_level_set = self.mask.copy()  # the nodes `project` puts back on phi = 0
+        self.partner = np.full(n, -1, np.int64)
+        self.shift = np.zeros((n, 3))
+        self.normals = np.zeros((n, 3))  # unit gradients of phi at the first positions; e_a on faces
+        self.grad_norm = np.ones(n)
+        one_plane = (planes.sum(axis=(1, 2)) == 1) & (np.asarray(node_inclusion) == 0)
+        for a, pairs in (periodic_pairs or {}).items():
+            pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+            u, v = pairs[:, 0], pairs[:, 1]
+            face = one_plane[u] & planes[u, a, 0]
+            u, v = u[face], v[face]
+            self.mask[u] = True
+            self.partner[u] = v
+            self.shift[u] = points[v] - points[u]
+            self.normals[u, a] = 1.0
         self.phi_fn = phi_fn
         self.tol = PHI_TOL * float(box.max())
         self.triangles = np.asarray(triangles, dtype=np.int64)
@@ -50,9 +74,16 @@ class SurfaceSlide:
         order = np.argsort(flat, kind="stable")  # node -> its surface triangles, CSR
         self._tri_of = order // 3
         self._tri_off = np.concatenate([[0], np.cumsum(np.bincount(flat, minlength=n))])
-        self.normals = np.zeros((n, 3))  # unit gradients of phi at the first positions
-        self.grad_norm = np.ones(n)
-        self._refresh(points, np.flatnonzero(self.mask))
+        self._refresh(points, np.flatnonzero(self.on_level_set))
+
+    def contract(self, edges: np.ndarray) -> np.ndarray:
+        """Edges (k, 2) with each copy replaced by its sliding 0-face node: colour classes of these
+        never hold two nodes whose (joint) stars share a tet."""
+        rep = np.arange(len(self.partner))
+        has = self.partner >= 0
+        rep[self.partner[has]] = np.flatnonzero(has)
+        e = rep[edges]
+        return e[e[:, 0] != e[:, 1]]
 
     def _refresh(self, points: np.ndarray, nodes: np.ndarray) -> None:
         if not len(nodes):
@@ -65,6 +96,7 @@ class SurfaceSlide:
         self.normals[nodes] = np.where(ok[:, None], g / np.where(ok, norm, 1.0)[:, None], 0.0)
         self.grad_norm[nodes] = np.where(ok, norm, 1.0)
         self.mask[nodes[~ok]] = False  # no normal (a kink of the field): keep the node where it is
+        self.on_level_set[nodes[~ok]] = False
 
     def _phi(self, x: np.ndarray) -> np.ndarray:
         return np.asarray(self.phi_fn(x), dtype=float).reshape(-1)
@@ -78,14 +110,15 @@ class SurfaceSlide:
 
     def project(self, points: np.ndarray, before: np.ndarray, cells: np.ndarray, by: np.ndarray,
                 off: np.ndarray) -> int:
-        """Put the sliding nodes moved since `before` back on the level set, in place.
+        """Put the interface nodes moved since `before` back on the level set, in place.
 
         Only the tets around them change shape; where one is no longer positive, the moves of its
-        vertices (any vertex) are undone, until every tet is positive again. by, off: vertex ->
-        tets CSR of cells. The normals are those of the first positions (they turn by about the
-        curvature times the moves, which the secant steps absorb). Returns the number of moves undone.
+        vertices (any vertex, and a face node with its copy) are undone, until every tet is positive
+        again. by, off: vertex -> tets CSR of cells. The normals are those of the first positions
+        (they turn by about the curvature times the moves, which the secant steps absorb). Returns
+        the number of moves undone.
         """
-        moved = np.flatnonzero(self.mask & np.any(points != before, axis=1))
+        moved = np.flatnonzero(self.on_level_set & np.any(points != before, axis=1))
         if not len(moved):
             return 0
         x0, n = points[moved], self.normals[moved]
@@ -94,6 +127,8 @@ class SurfaceSlide:
         off_set = np.abs(phi) > self.tol
         points[moved] = np.where(off_set[:, None], before[moved], x0 + t[:, None] * n)
         undone = int(off_set.sum())
+        copy_of = np.full(len(points), -1, np.int64)
+        copy_of[self.partner[self.partner >= 0]] = np.flatnonzero(self.partner >= 0)
         check = moved
         while len(check):
             tets = np.unique(_star_rows(by, off, check)[0])
@@ -101,9 +136,11 @@ class SurfaceSlide:
             six_v = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], cross3(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
             lmax = np.max(np.linalg.norm(p[:, [1, 2, 3, 2, 3, 3]] - p[:, [0, 0, 0, 1, 1, 2]], axis=-1), axis=1)
             back = np.unique(cells[tets[six_v <= 1e-9 * lmax**3]].ravel())
+            back = np.unique(np.concatenate([back, self.partner[back], copy_of[back]]))
+            back = back[back >= 0]
             back = back[np.any(points[back] != before[back], axis=1)]
             points[back] = before[back]
-            undone += len(back)
+            undone += int((copy_of[back] < 0).sum())  # a face node and its copy are one move
             check = back
         return undone
 

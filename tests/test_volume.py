@@ -513,12 +513,22 @@ def slid_case(sphere_case):
     return s2, s3, fixed, slid, ms
 
 
-def test_sliding_keeps_interface_nodes_on_the_level_set_and_box_nodes_fixed(slid_case):
+def test_sliding_keeps_nodes_on_their_level_set_or_plane_and_the_faces_periodic(slid_case):
+    from jaxmesh._mesh import on_box_planes
+
     s2, s3, _, slid, ms = slid_case
     iface = s2.node_inclusion > 0
+    planes = on_box_planes(s2.points, s2.box)
+    face = ~iface & (planes.sum(axis=(1, 2)) == 1)  # box-face nodes off the box edges
     moved = np.any(s3.points != s2.points, axis=1)
-    assert slid.metadata["volume"]["slid"] == moved.sum() > 0.5 * iface.sum()
-    assert not moved[~iface].any()
+    assert slid.metadata["volume"]["slid"] == moved.sum()
+    assert moved[iface].sum() > 0.5 * iface.sum() and moved[face].sum() > 0.5 * face.sum()
+    assert not moved[~iface & ~face].any()  # edge and corner nodes
+    np.testing.assert_array_equal(on_box_planes(s3.points, s3.box), planes)
+    for a, pairs in s2.periodic_pairs.items():  # exact translates, in both meshes
+        np.testing.assert_array_equal(s3.points[pairs[:, 1]] - s3.points[pairs[:, 0]],
+                                      np.tile(np.eye(3)[a] * s3.box[a], (len(pairs), 1)))
+        np.testing.assert_array_equal(slid.periodic_pairs[a], pairs)
     np.testing.assert_array_equal(slid.points[: s2.n_points], s3.points)
     assert np.abs(ms.phi(s3.points[iface])).max() < 1e-12
     np.testing.assert_array_equal(s3.triangles, s2.triangles)
@@ -550,7 +560,7 @@ def test_projection_undoes_a_move_that_inverts_a_tet_and_keeps_a_small_one(spher
     points, cells = before.points.copy(), before.cells
     slide = SurfaceSlide(points, s2.triangles, s2.node_inclusion, s2.box, ms.phi)
     by, off = _stars(cells, len(points))
-    u, v = np.flatnonzero(slide.mask)[:2]
+    u, v = np.flatnonzero(slide.on_level_set)[:2]
     start = points.copy()
     for node, length, undone in ((u, 3 * H, 1), (v, 0.05 * H, 0)):
         tangent = np.cross(slide.normals[node], [1.0, 0.0, 0.0])
