@@ -1,8 +1,8 @@
 """Tet quality optimisation and sliver removal (paper 4.7) by local operations that never touch a
-surface triangle; surface nodes move only when a `_surface_slide.SurfaceSlide` lets interface nodes
-slide on their level set. NumPy only.
+surface triangle; surface nodes move only when a `_surface_slide.SurfaceSlide` lets them slide
+(interface nodes on their level set, box-face nodes in their plane with their periodic copy). NumPy only.
 
-(a) smoothing: interior vertices (and sliding interface nodes, in their tangent planes) move to
+(a) smoothing: interior vertices (and sliding surface nodes, in their tangent planes) move to
 raise the worst and the mean quality of their stars (many at once: sets of vertices that share no tet);
 (b) flips: edge removal (3-2, 4-4, 5-6, 6-8, 7-10) and 2-3 flips whose removed faces are not surface
 triangles, applied when they raise the worst quality of the tets they replace;
@@ -143,12 +143,13 @@ def smooth_vertices(points: np.ndarray, cells: np.ndarray, free: np.ndarray, swe
 
     With `slide` (a `_surface_slide.SurfaceSlide`) its surface nodes move too: candidates are taken
     in their tangent planes, a move must also keep their surface triangles' angles
-    (`SurfaceSlide.keeps_triangles`), and after each sweep the moved ones are projected back onto
-    their level set (`SurfaceSlide.project`, which undoes what the projection would invert).
+    (`SurfaceSlide.keeps_triangles`), a box-face node moves with its periodic copy (one joint star),
+    and after each sweep the moved interface nodes are projected back onto their level set
+    (`SurfaceSlide.project`, which undoes what the projection would invert).
 
     Args:
         points: (n, 3); cells: (m, 4) positive tets; free: (n,) bool movable vertices; sweeps: passes.
-        slide: optional SurfaceSlide (surface nodes that may slide on their level set).
+        slide: optional SurfaceSlide (surface nodes that may slide on their level set or box plane).
     Returns:
         (new points, number of accepted moves).
     """

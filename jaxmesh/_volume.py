@@ -51,8 +51,9 @@ class VolumeConfig:
         ball_vertex_stiffness: ball-vertex spring constant in the relaxation (section 4.7).
         sliver_angle: sliver removal targets tets with a dihedral angle below this (degrees).
         sliver_passes: passes of vertex moves / flips / insertions.
-        slide_surface: let interface nodes slide on their level set in the quality smoothing when the
-            global level set is known (`tetrahedralize`'s phi_fn; `_surface_slide`). Box nodes stay.
+        slide_surface: let surface nodes slide in the quality smoothing when the global level set is
+            known (`tetrahedralize`'s phi_fn; `_surface_slide`): interface nodes on it, box-face nodes
+            in their plane with their periodic copy; trace, box-edge and corner nodes stay.
     """
 
     clearance: float = 0.6
@@ -365,7 +366,7 @@ def tetrahedralize(surface: SurfaceMesh, interior_points: np.ndarray | None = No
         label_fn: optional field labels points (k, 3) -> (k,) ids, checked at the centroids of
             cells with no surface vertex (MeshingError on disagreement).
         phi_fn: optional global level set (NumPy, negative inside): the label check tolerates
-            centroids near it, and the smoothing slides interface nodes on it (config.slide_surface).
+            centroids near it, and the smoothing slides surface nodes (config.slide_surface).
         h_jax_fn: JAX size function for the relaxation (default: h_fn sampled on a periodic grid).
         return_surface: also return the SurfaceMesh actually kept (refined if recovery split edges).
     Returns:
@@ -405,7 +406,7 @@ def tetrahedralize(surface: SurfaceMesh, interior_points: np.ndarray | None = No
 
         mesh = _make_mesh(points, cells, surface, meta)
         mesh, surface = relax_volume(mesh, surface, h_fn, config, h_jax_fn=h_jax_fn, project_fn=project_fn,
-                                     phi_fn=phi_fn, return_surface=True)  # interface nodes may slide
+                                     phi_fn=phi_fn, return_surface=True)  # surface nodes may slide
     else:
         mesh = _make_mesh(points, cells, surface, meta)
     if label_fn is not None:

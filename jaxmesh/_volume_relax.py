@@ -1,5 +1,5 @@
 """Volume relaxation (paper 4.7): quality optimisation by flips and smoothing of the interior nodes
-(and of the interface nodes, sliding on their level set when it is given), then sliver removal;
+(and of the surface nodes, sliding on their level set or box plane when it is given), then sliver removal;
 optionally first a truss with surface nodes fixed, surface-keeping retriangulation and ball-vertex
 springs (VolumeConfig.truss). JAX enters through the truss only.
 """
@@ -56,8 +56,9 @@ def relax_volume(mesh: Mesh, surface: SurfaceMesh, h_fn: Callable, config: Volum
     """Improve the interior of a conforming mesh and remove slivers; the surface stays exact.
 
     Surface nodes (the first surface.n_points nodes of the mesh) are fixed, except that with phi_fn
-    (the global level set) and config.slide_surface the interface nodes slide on it while the
-    quality is optimised (`remove_slivers`; the surface keeps its triangles). With a truss in config
+    (the global level set) and config.slide_surface they slide while the quality is optimised
+    (`remove_slivers`: interface nodes on phi = 0, box-face nodes in their plane with their periodic
+    copy; the surface keeps its triangles). With a truss in config
     the interior nodes are relaxed first: each retriangulation is a Delaunay that must contain every
     surface triangle, otherwise the previous topology is kept, and a conforming Delaunay of the moved
     nodes is rebuilt (recovery as in `conforming_delaunay`). Then `remove_slivers` runs (flips and
@@ -69,7 +70,7 @@ def relax_volume(mesh: Mesh, surface: SurfaceMesh, h_fn: Callable, config: Volum
         config: VolumeConfig (truss, ball_vertex_stiffness, sliver_angle, sliver_passes).
         h_jax_fn: JAX size function for the truss (default `grid_size_fn(h_fn, box)`).
         project_fn: projection of split interface midpoints if recovery must split.
-        phi_fn: NumPy global level set points (k, 3) -> (k,), for the sliding interface nodes.
+        phi_fn: NumPy global level set points (k, 3) -> (k,), for the sliding surface nodes.
         return_surface: also return the SurfaceMesh kept (refined if recovery split edges).
     Returns:
         Mesh with metadata['volume'] updated (relaxation stop reason, sliver counts, quality).
@@ -143,7 +144,7 @@ def optimise_mesh(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, r
 
     Flips first: the conforming Delaunay's slivers are mostly fixed by edge removals, and smoothing
     then works on a better topology. Surface triangles never change; surface nodes move only with
-    `slide` (interface nodes sliding on their level set). With `local` the flips too stay at tets
+    `slide` (a SurfaceSlide). With `local` the flips too stay at tets
     with a `free` vertex (the clean-up around Steiner points).
     """
     if free is None:
@@ -166,13 +167,13 @@ def optimise_mesh(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh, r
 def remove_slivers(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh,
                    config: VolumeConfig = VolumeConfig(), phi_fn: Callable | None = None):
     """Quality optimisation (`optimise_mesh`: flips and smoothing; with phi_fn and config.slide_surface
-    the interface nodes slide on that level set, `SurfaceSlide`), then up to config.sliver_passes
+    the surface nodes slide, `SurfaceSlide`), then up to config.sliver_passes
     rounds for the slivers left (dihedral angle below config.sliver_angle): Steiner points in local
     cavities that keep the surface (`insert_steiner`), optimised again near them. Slivers stay where
     thin surface triangles force them: every tet on a surface triangle with a small angle is flat.
 
     Returns:
-        (points, cells, the SurfaceMesh (its interface nodes where they slid), info {'slivers_before',
+        (points, cells, the SurfaceMesh (its nodes where they slid), info {'slivers_before',
         'slivers_after', 'inserted', 'opt_flips', 'opt_moves', 'slid'}).
     """
     angle = config.sliver_angle
@@ -185,7 +186,7 @@ def remove_slivers(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh,
                              surface.periodic_pairs)
     first = points[: surface.n_points].copy()
     for rnd in range(config.sliver_passes + 1):
-        # the interface nodes slide in the global pass only; the Steiner clean-ups stay local
+        # the surface nodes slide in the global pass only; the Steiner clean-ups stay local
         points, cells, oinfo = optimise_mesh(points, cells, surface, free=free, local=rnd > 0,
                                              slide=slide if rnd == 0 else None)
         for k, v in oinfo.items():
