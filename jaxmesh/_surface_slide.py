@@ -18,15 +18,15 @@ from collections.abc import Callable
 import numpy as np
 
 from ._mesh import on_box_planes
-from ._quality import cross3
-from ._slivers import _star_rows
+from ._quality import _angle
+from ._slivers import _star_rows, tet_quality
 
 __all__ = ["SurfaceSlide"]
 
 # A move may not take a surface triangle's smallest angle below min(its angle now, MIN_ANGLE).
 MIN_ANGLE = 30.0
 # Secant steps of the projection, and |phi| it must reach (times the box's longest side).
-NEWTON_STEPS, PHI_TOL = 8, 1e-13
+SECANT_STEPS, PHI_TOL = 8, 1e-13
 
 
 class SurfaceSlide:
@@ -132,10 +132,7 @@ class SurfaceSlide:
         check = moved
         while len(check):
             tets = np.unique(_star_rows(by, off, check)[0])
-            p = points[cells[tets]]
-            six_v = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], cross3(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
-            lmax = np.max(np.linalg.norm(p[:, [1, 2, 3, 2, 3, 3]] - p[:, [0, 0, 0, 1, 1, 2]], axis=-1), axis=1)
-            back = np.unique(cells[tets[six_v <= 1e-9 * lmax**3]].ravel())
+            back = np.unique(cells[tets[tet_quality(points[cells[tets]]) <= 1e-9]].ravel())
             back = np.unique(np.concatenate([back, self.partner[back], copy_of[back]]))
             back = back[back >= 0]
             back = back[np.any(points[back] != before[back], axis=1)]
@@ -148,11 +145,11 @@ class SurfaceSlide:
 def _secant_roots(f: Callable, f0: np.ndarray, slope: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
     """Roots near 0 of k line functions f(t) (k,) -> (k,), f(0) = f0, by the secant method, the
     first step with the given slope. Returns (t, f(t)); rows that do not reach |f| <= tol in
-    NEWTON_STEPS keep their last iterate."""
+    SECANT_STEPS keep their last iterate."""
     t_prev, f_prev = np.zeros_like(f0), f0
     t = -f0 / slope
     f_t = f(t)
-    for _ in range(NEWTON_STEPS):
+    for _ in range(SECANT_STEPS):
         if np.abs(f_t).max(initial=0.0) <= tol:
             break
         df = f_t - f_prev
@@ -169,10 +166,9 @@ class _Frame:
     def __init__(self, slide: SurfaceSlide, points: np.ndarray, verts: np.ndarray, sliding: np.ndarray):
         self.normals = np.where(sliding[:, None], slide.normals[verts], 0.0)  # 0: moves freely
         rows = np.flatnonzero(sliding)
-        counts = slide._tri_off[verts[rows] + 1] - slide._tri_off[verts[rows]]
-        self.owner = np.repeat(rows, counts)
-        start = np.repeat(slide._tri_off[verts[rows]] - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
-        tris = slide.triangles[slide._tri_of[start + np.arange(counts.sum())]]
+        tri_ids, owner = _star_rows(slide._tri_of, slide._tri_off, verts[rows])
+        self.owner = rows[owner]
+        tris = slide.triangles[tri_ids]
         local = np.argmax(tris == verts[self.owner][:, None], axis=1)
         self.b = points[tris[np.arange(len(tris)), (local + 1) % 3]]
         self.c = points[tris[np.arange(len(tris)), (local + 2) % 3]]
@@ -191,9 +187,7 @@ class _Frame:
         a = x[self.owner]
         worst = np.full(len(a), 180.0)
         for p, u, v in ((a, self.b, self.c), (self.b, self.c, a), (self.c, a, self.b)):
-            e1, e2 = u - p, v - p
-            ang = np.degrees(np.arctan2(np.linalg.norm(cross3(e1, e2), axis=1), np.einsum("ij,ij->i", e1, e2)))
-            worst = np.minimum(worst, ang)
+            worst = np.minimum(worst, _angle(u - p, v - p))
         np.minimum.at(out, self.owner, worst)
         return out
 
