@@ -1,4 +1,4 @@
-"""The volume quality optimisation alone, with and without sliding interface nodes (one run, ratios).
+"""The volume quality optimisation alone, with and without sliding surface nodes (one run, ratios).
 
 Usage:
     python benchmarks/bench_optimise.py                       # Table-1 coarse RVE (bench_pipeline's preset)

@@ -67,6 +67,8 @@ class SurfaceSlide:
             self.partner[u] = v
             self.shift[u] = points[v] - points[u]
             self.normals[u, a] = 1.0
+        self.copy_of = np.full(n, -1, np.int64)  # the inverse of partner
+        self.copy_of[self.partner[self.partner >= 0]] = np.flatnonzero(self.partner >= 0)
         self.phi_fn = phi_fn
         self.tol = PHI_TOL * float(box.max())
         self.triangles = np.asarray(triangles, dtype=np.int64)
@@ -79,9 +81,7 @@ class SurfaceSlide:
     def contract(self, edges: np.ndarray) -> np.ndarray:
         """Edges (k, 2) with each copy replaced by its sliding 0-face node: colour classes of these
         never hold two nodes whose (joint) stars share a tet."""
-        rep = np.arange(len(self.partner))
-        has = self.partner >= 0
-        rep[self.partner[has]] = np.flatnonzero(has)
+        rep = np.where(self.copy_of >= 0, self.copy_of, np.arange(len(self.copy_of)))
         e = rep[edges]
         return e[e[:, 0] != e[:, 1]]
 
@@ -127,17 +127,15 @@ class SurfaceSlide:
         off_set = np.abs(phi) > self.tol
         points[moved] = np.where(off_set[:, None], before[moved], x0 + t[:, None] * n)
         undone = int(off_set.sum())
-        copy_of = np.full(len(points), -1, np.int64)
-        copy_of[self.partner[self.partner >= 0]] = np.flatnonzero(self.partner >= 0)
         check = moved
         while len(check):
             tets = np.unique(_star_rows(by, off, check)[0])
             back = np.unique(cells[tets[tet_quality(points[cells[tets]]) <= 1e-9]].ravel())
-            back = np.unique(np.concatenate([back, self.partner[back], copy_of[back]]))
+            back = np.unique(np.concatenate([back, self.partner[back], self.copy_of[back]]))
             back = back[back >= 0]
             back = back[np.any(points[back] != before[back], axis=1)]
             points[back] = before[back]
-            undone += int((copy_of[back] < 0).sum())  # a face node and its copy are one move
+            undone += int((self.copy_of[back] < 0).sum())  # a face node and its copy are one move
             check = back
         return undone
 

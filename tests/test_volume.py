@@ -501,7 +501,7 @@ def test_cut_spheres_from_surface_stage(spheres):
     assert rep.ok, rep.summary()
 
 
-# ----------------------------------------------------------------------------- interface nodes sliding on their level set
+# ----------------------------------------------------------------------------- surface nodes sliding (level set, box planes)
 @pytest.fixture(scope="module")
 def slid_case(sphere_case):
     from jaxmesh._volume_relax import relax_volume
