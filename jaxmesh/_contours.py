@@ -1,4 +1,4 @@
-"""Interface curves of a periodic 2D microstructure (NumPy only, never imports jax).
+"""Interface curves of a 2D microstructure, periodic or not (NumPy only, never imports jax).
 
 Paper section 4.4 in 2D: each inclusion's zero contour is extracted ON ITS OWN from its own
 level set sampled on a local window (its bounds + a margin, in unwrapped coordinates: the
@@ -12,6 +12,12 @@ Section 4.5 in 2D: the box edges are meshed once on the master edges (x = 0, y =
 the crossings and corners, at spacing ~h, and copied to the opposite edges. The result is a
 :class:`PSLG` whose box segments know their translated partners, so that any later split of a
 box segment (:func:`split_segments`) is mirrored and the boundary stays periodic.
+
+Non-periodic boxes (:func:`box_window_axes`, :func:`extract_box_loops`, :func:`clip_loop`,
+:func:`assemble_box_pslg`): the window is clipped to the closed box and padded with positive
+samples on the box lines, so a contour cut by a side closes along that side; the pieces inside
+the box are kept, the rest is dropped. Each of the four sides has its own crossings and nodes,
+and no segment has a partner.
 
 The level-set numerics (projection onto phi = 0) arrive as callbacks from the JAX side.
 """
@@ -35,7 +41,7 @@ BOX_SEGMENT = -1  # segment_inclusion of box-edge segments
 
 @dataclass
 class PSLG:
-    """Constrained nodes and segments of a periodic 2D box.
+    """Constrained nodes and segments of a 2D box (periodic, or with four independent sides).
 
     Attributes:
         points: (n, 2) node coordinates in [0, Lx] x [0, Ly].
@@ -47,8 +53,10 @@ class PSLG:
             (box corner or interface/box crossing).
         node_axis: (n,) normal axis of the box line a BOX_EDGE/FIXED-crossing node sits on (-1 otherwise).
         node_inclusion: (n,) inclusion id of interface and crossing nodes (0 otherwise).
-        periodic_pairs: axis -> (k, 2) (node on x_axis = 0, its translate on x_axis = L).
+        periodic_pairs: axis -> (k, 2) (node on x_axis = 0, its translate on x_axis = L); {} when
+            not periodic.
         box: (Lx, Ly).
+        periodic: opposite box edges are translates (False: every box segment is partnerless).
     """
 
     points: np.ndarray
@@ -60,6 +68,7 @@ class PSLG:
     node_inclusion: np.ndarray
     periodic_pairs: dict[int, np.ndarray] = field(default_factory=dict)
     box: tuple[float, float] = (1.0, 1.0)
+    periodic: bool = True
 
     @property
     def n_points(self) -> int:
@@ -234,6 +243,130 @@ def _local_crossing(p, a, k, tcan, cell, L, inclusion_id):
     return q, side
 
 
+# ----------------------------------------------------------------------------- non-periodic box
+def box_window_axes(lower, upper, step: float, margin: float, box) -> list[np.ndarray]:
+    """Sample coordinates per axis of a window around an inclusion, clipped to the closed box.
+
+    Samples at lower - margin + i * step that lie inside the box, none closer than step / 4 to a
+    box line (no sliver cells); where the window reaches a box line, the line itself (exactly 0
+    or L) is a sample, so contours meet it at their true crossings.
+
+    Args:
+        lower, upper: (2,) bounds of the inclusion (may stick out of the box). step: spacing.
+        margin: added on every side. box: (2,) lengths.
+    Returns:
+        [xs, ys]: increasing coordinates, the window samples are their outer product.
+    """
+    axes = []
+    for lo, hi, L in zip(np.asarray(lower, float) - margin, np.asarray(upper, float) + margin, np.asarray(box, float)):
+        x = lo + step * np.arange(int(np.ceil((hi - lo) / step)) + 1)
+        inner = x[(x > 0.25 * step) & (x < L - 0.25 * step)]
+        axes.append(np.concatenate([[0.0] if x[0] <= 0.25 * step else [], inner,
+                                    [L] if x[-1] >= L - 0.25 * step else []]))
+    return axes
+
+
+def extract_box_loops(values: np.ndarray, axes, box, inclusion_id: int) -> list[np.ndarray]:
+    """Closed zero contours of a window sample of a non-periodic box, in box coordinates.
+
+    Where the window lies on a box line, one more row of positive samples at the same coordinate
+    is added: a contour cut by that line then closes along it (its vertices there exactly on the
+    line, see :func:`clip_loop`) instead of running out of the window.
+
+    Args:
+        values: (nx, ny) samples of the inclusion's level set at the outer product of ``axes``.
+        axes: [xs, ys] from :func:`box_window_axes`. box: (2,) lengths. inclusion_id: for errors.
+    Returns:
+        list of (k, 2) loops (first point not repeated). Raises MeshingError when a contour
+        reaches a window edge inside the box (bounds too small).
+    """
+    values = np.asarray(values, dtype=float)
+    if not np.any(values < 0):
+        raise MeshingError("contours", "the level set has no negative sample in its window", inclusion_id)
+    L = np.asarray(box, dtype=float)
+    positive = float(np.abs(values).max()) + 1.0
+    coords = []
+    for k, x in enumerate(axes):
+        before, after = int(x[0] == 0.0), int(x[-1] == L[k])
+        widths = [(0, 0), (0, 0)]
+        widths[k] = (before, after)
+        values = np.pad(values, widths, constant_values=positive)
+        coords.append(np.concatenate([x[:1]] * before + [x] + [x[-1:]] * after))
+    loops = []
+    scale = 1e-12 * float(L.max())
+    for c in find_contours(values, 0.0):
+        if not np.allclose(c[0], c[-1]):
+            raise MeshingError(
+                "contours", "the zero contour reaches the edge of the inclusion window (bounds too small?)",
+                inclusion_id,
+            )
+        p = np.stack([np.interp(c[:-1, k], np.arange(len(x)), x) for k, x in enumerate(coords)], axis=1)
+        keep = np.ones(len(p), dtype=bool)
+        keep[1:] = np.any(np.abs(np.diff(p, axis=0)) > scale, axis=1)
+        p = p[keep]
+        if len(p) >= 3:
+            loops.append(p)
+    if not loops:
+        raise MeshingError("contours", "no closed zero contour found", inclusion_id)
+    return loops
+
+
+def clip_loop(loop: np.ndarray, box, refine_fn: Callable, inclusion_id: int) -> tuple[list[Arc], list[Crossing]]:
+    """The pieces of a closed loop inside a non-periodic box; what runs along the box lines goes.
+
+    Vertices exactly on a box line (as :func:`extract_box_loops` leaves them where the box cuts
+    the inclusion) are outside; every run of inside vertices is an arc whose two end vertices,
+    on a box line, are crossings. Nothing is translated: a crossing is on one side only.
+
+    Args:
+        loop: (n, 2) closed polyline in the closed box (first point not repeated).
+        box: (2,) lengths.
+        refine_fn: ``(points (k, 2), axis (k,)) -> (k, 2)``: moves each approximate crossing along
+            its line (coordinate ``axis`` untouched) onto phi = 0.
+        inclusion_id: owner.
+    Returns:
+        (arcs, crossings) as :func:`cut_loop`: an arc's start/end is (crossing index, side), side 0
+        on x_axis = 0 and 1 on x_axis = L.
+    """
+    L = np.asarray(box, dtype=float)
+    V = np.asarray(loop, dtype=float)
+    on_line = (V == 0.0) | (V == L)
+    on = on_line.any(axis=1)
+    if not on.any():
+        return [Arc(inclusion_id, V.copy(), closed=True)], []
+    n = len(V)
+    leave = np.nonzero(on & ~np.roll(on, -1))[0]  # last boundary vertex before a run of inside ones
+    if leave.size == 0:
+        return [], []  # the loop runs along the box lines only: nothing of it is inside
+    runs = []
+    for i in leave:
+        j = i + 1
+        while not on[j % n]:
+            j += 1
+        runs.append((i, j % n))
+    ends = np.array([e for run in runs for e in run])
+    if np.any(on_line[ends].all(axis=1)):
+        raise MeshingError("contours", "the interface passes through a box corner; shift the geometry slightly",
+                           inclusion_id)
+    ax = np.argmax(on_line[ends], axis=1)
+    rows = np.arange(ends.size)
+    side = (V[ends, ax] == L[ax]).astype(np.int64)
+    pts = np.asarray(refine_fn(V[ends], ax), dtype=float).copy()
+    pts[rows, ax] = side * L[ax]  # exactly on the line
+    other = 1 - ax
+    t = pts[rows, other]
+    if np.any(np.minimum(t, L[other] - t) < 1e-9 * L[other]):
+        raise MeshingError("contours", "an interface crossing is at (or beyond) a box corner; shift the geometry "
+                           "slightly", inclusion_id)
+    crossings = [Crossing(int(a), float(tc), inclusion_id) for a, tc in zip(ax, t)]
+    arcs = []
+    for k, (i, j) in enumerate(runs):
+        inner = V[(i + 1 + np.arange((j - i - 1) % n)) % n]
+        arcs.append(Arc(inclusion_id, np.vstack([pts[2 * k], inner, pts[2 * k + 1]]), False,
+                        (2 * k, int(side[2 * k])), (2 * k + 1, int(side[2 * k + 1]))))
+    return arcs, crossings
+
+
 # ----------------------------------------------------------------------------- resampling
 def resample_polyline(points: np.ndarray, closed: bool, h_fn: Callable, min_segments: int = 1) -> np.ndarray:
     """Nodes equidistributed in h-weighted arclength (integral of ds / h) along a polyline.
@@ -292,7 +425,8 @@ def split_segments(pslg: PSLG, which: np.ndarray, project_fn: Callable) -> PSLG:
 
     Interface midpoints go through ``project_fn(points (k, 2), inclusion_ids (k,)) -> (k, 2)``
     (back onto the level set). A box segment is split on its master edge (x_axis = 0) and the
-    same point, translated, splits its partner, and the new pair joins ``periodic_pairs``.
+    same point, translated, splits its partner, and the new pair joins ``periodic_pairs``; a
+    segment without partner (every box segment of a non-periodic box) is split alone.
 
     Args:
         pslg: the graph. which: (s,) bool or index array of segments to split.
@@ -372,11 +506,36 @@ def split_segments(pslg: PSLG, which: np.ndarray, project_fn: Callable) -> PSLG:
         node_kind=np.concatenate([pslg.node_kind, np.asarray(kind, pslg.node_kind.dtype)]),
         node_axis=np.concatenate([pslg.node_axis, np.asarray(axis, pslg.node_axis.dtype)]),
         node_inclusion=np.concatenate([pslg.node_inclusion, np.asarray(ninc, pslg.node_inclusion.dtype)]),
-        periodic_pairs={a: np.asarray(pairs[a], np.int64).reshape(-1, 2) for a in (0, 1)},
+        periodic_pairs={a: np.asarray(pairs[a], np.int64).reshape(-1, 2) for a in (0, 1)} if pslg.periodic else {},
     )
 
 
 # ----------------------------------------------------------------------------- assembly
+def _line_parameters(crossings: list[Crossing], cid: np.ndarray, a: int, level: float, L, h_fn: Callable):
+    """Node parameters along the box line x_a = level: corners, the crossings cid, ~h between.
+
+    Returns:
+        (cid sorted along the line, parameters (p,), index of each crossing in the parameters).
+    """
+    b = 1 - a
+    tc = np.array([crossings[i].t for i in cid], dtype=float)
+    order = np.argsort(tc)
+    cid, tc = cid[order], tc[order]
+    if tc.size > 1 and np.any(np.diff(tc) <= 1e-12 * L[b]):
+        raise MeshingError("box edges", f"two interfaces cross the box line x_{a} = {level:g} at the same point")
+
+    def line_point(t):
+        p = np.zeros((len(t), 2))
+        p[:, a] = level
+        p[:, b] = t
+        return p
+
+    params = edge_parameters(np.concatenate([[0.0], tc, [L[b]]]), line_point, h_fn)
+    where = np.searchsorted(params, tc)
+    assert np.all(params[where] == tc)
+    return cid, params, where
+
+
 def assemble_pslg(arcs: list[Arc], crossings: list[Crossing], box, h_fn: Callable) -> PSLG:
     """Constrained graph of the box: corners, box-edge nodes (master edges copied), interface arcs.
 
@@ -406,21 +565,8 @@ def assemble_pslg(arcs: list[Arc], crossings: list[Crossing], box, h_fn: Callabl
     for a in (0, 1):
         b = 1 - a
         cid = np.array([i for i, c in enumerate(crossings) if c.axis == a], dtype=np.int64)
-        tc = np.array([crossings[i].t for i in cid], dtype=float)
-        order = np.argsort(tc)
-        cid, tc = cid[order], tc[order]
-        if tc.size > 1 and np.any(np.diff(tc) <= 1e-12 * L[b]):
-            raise MeshingError("box edges", f"two interfaces cross the box line x_{a} = 0 at the same point")
-
-        def line_point(t, a=a, b=b):
-            p = np.zeros((len(t), 2))
-            p[:, b] = t
-            return p
-
-        params = edge_parameters(np.concatenate([[0.0], tc, [L[b]]]), line_point, h_fn)
+        cid, params, where = _line_parameters(crossings, cid, a, 0.0, L, h_fn)
         is_crossing = np.zeros(len(params), dtype=bool)
-        where = np.searchsorted(params, tc)
-        assert np.all(params[where] == tc)
         is_crossing[where] = True
         owner = np.zeros(len(params), dtype=np.int64)
         owner[where] = [crossings[i].inclusion_id for i in cid]
@@ -448,18 +594,7 @@ def assemble_pslg(arcs: list[Arc], crossings: list[Crossing], box, h_fn: Callabl
             seg_inc.extend([BOX_SEGMENT, BOX_SEGMENT])
             seg_partner.extend([s0 + 2 * i + 1, s0 + 2 * i])
 
-    for arc in arcs:
-        nodes = np.asarray(arc.points, dtype=float)
-        if arc.closed:
-            ids = [add(p, INTERFACE, -1, arc.inclusion_id) for p in nodes]
-            ring = ids + ids[:1]
-        else:
-            ids = [add(p, INTERFACE, -1, arc.inclusion_id) for p in nodes[1:-1]]
-            ring = [node_of[arc.start]] + ids + [node_of[arc.end]]
-        for u, v in zip(ring[:-1], ring[1:]):
-            seg.append((u, v))
-            seg_inc.append(arc.inclusion_id)
-            seg_partner.append(-1)
+    _append_arcs(arcs, node_of, add, seg, seg_inc, seg_partner)
     return PSLG(
         points=np.asarray(pts, dtype=float),
         segments=np.asarray(seg, dtype=np.int64).reshape(-1, 2),
@@ -473,13 +608,106 @@ def assemble_pslg(arcs: list[Arc], crossings: list[Crossing], box, h_fn: Callabl
     )
 
 
+def _append_arcs(arcs: list[Arc], node_of: dict, add: Callable, seg: list, seg_inc: list, seg_partner: list):
+    """Interface nodes and segments of the arcs; open arcs end on their crossing nodes node_of[(c, side)]."""
+    for arc in arcs:
+        nodes = np.asarray(arc.points, dtype=float)
+        if arc.closed:
+            ids = [add(p, INTERFACE, -1, arc.inclusion_id) for p in nodes]
+            ring = ids + ids[:1]
+        else:
+            ids = [add(p, INTERFACE, -1, arc.inclusion_id) for p in nodes[1:-1]]
+            ring = [node_of[arc.start]] + ids + [node_of[arc.end]]
+        for u, v in zip(ring[:-1], ring[1:]):
+            seg.append((u, v))
+            seg_inc.append(arc.inclusion_id)
+            seg_partner.append(-1)
+
+
+# the four sides of a non-periodic box: (normal axis, side) -> (corner at t = 0, corner at t = L)
+_SIDES = {(0, 0): (0, 2), (0, 1): (1, 3), (1, 0): (0, 1), (1, 1): (2, 3)}  # corners BL, BR, TL, TR
+
+
+def assemble_box_pslg(arcs: list[Arc], crossings: list[Crossing], box, h_fn: Callable) -> PSLG:
+    """Constrained graph of a non-periodic box: corners, each side meshed on its own, interface arcs.
+
+    Args:
+        arcs: resampled arcs/loops from :func:`clip_loop` (open arcs end exactly at their crossings).
+        crossings: every crossing the arcs refer to; each lies on the side its arc end names.
+        box: (Lx, Ly). h_fn: NumPy size function for the box-edge spacing.
+    Returns:
+        :class:`PSLG` with ``periodic=False``, no periodic pairs and no segment partners.
+    """
+    L = np.asarray(box, dtype=float)
+    pts = [np.array([0.0, 0.0]), np.array([L[0], 0.0]), np.array([0.0, L[1]]), np.array([L[0], L[1]])]
+    kind, axis, ninc = [FIXED] * 4, [-1] * 4, [0] * 4
+    seg, seg_inc, seg_partner = [], [], []
+    side_of = {end[0]: end[1] for arc in arcs if not arc.closed for end in (arc.start, arc.end)}
+    node_of = {}  # (crossing index, side) -> node id
+
+    def add(p, k, a, i):
+        pts.append(np.asarray(p, dtype=float))
+        kind.append(k)
+        axis.append(a)
+        ninc.append(i)
+        return len(pts) - 1
+
+    for (a, side), (lo, hi) in _SIDES.items():
+        b = 1 - a
+        cid = np.array([i for i, c in enumerate(crossings) if c.axis == a and side_of.get(i) == side],
+                       dtype=np.int64)
+        cid, params, where = _line_parameters(crossings, cid, a, side * L[a], L, h_fn)
+        is_crossing = np.zeros(len(params), dtype=bool)
+        is_crossing[where] = True
+        owner = np.zeros(len(params), dtype=np.int64)
+        owner[where] = [crossings[i].inclusion_id for i in cid]
+        chain = [lo]
+        for i in range(1, len(params) - 1):
+            p = np.zeros(2)
+            p[a], p[b] = side * L[a], params[i]
+            chain.append(add(p, FIXED if is_crossing[i] else BOX_EDGE, a, owner[i]))
+        chain.append(hi)
+        for c, w in zip(cid, where):
+            node_of[(int(c), side)] = chain[w]
+        seg.extend(zip(chain[:-1], chain[1:]))
+        seg_inc.extend([BOX_SEGMENT] * (len(chain) - 1))
+        seg_partner.extend([-1] * (len(chain) - 1))
+    _append_arcs(arcs, node_of, add, seg, seg_inc, seg_partner)
+    return PSLG(
+        points=np.asarray(pts, dtype=float),
+        segments=np.asarray(seg, dtype=np.int64).reshape(-1, 2),
+        segment_inclusion=np.asarray(seg_inc, dtype=np.int64),
+        segment_partner=np.asarray(seg_partner, dtype=np.int64),
+        node_kind=np.asarray(kind, dtype=np.int8),
+        node_axis=np.asarray(axis, dtype=np.int8),
+        node_inclusion=np.asarray(ninc, dtype=np.int64),
+        periodic_pairs={},
+        box=(float(L[0]), float(L[1])),
+        periodic=False,
+    )
+
+
 def rebuild_box_segments(pslg: PSLG) -> PSLG:
     """Box segments re-derived from the node order along each edge (box nodes slide in the truss
-    relaxation and may pass one another or a crossing); master and slave edges stay partners."""
+    relaxation and may pass one another or a crossing); master and slave edges stay partners.
+    Non-periodic: each side on its own, from its nodes (exactly on the side) between its corners."""
     L = np.asarray(pslg.box, dtype=float)
     pts = pslg.points
     seg, inc, partner = [], [], []
     keep = pslg.segment_inclusion != BOX_SEGMENT
+    if not pslg.periodic:
+        corner = (pslg.node_kind == FIXED) & (pslg.node_axis == -1)
+        for a, side in _SIDES:
+            on_side = ((pslg.node_axis == a) | corner) & (pts[:, a] == side * L[a])
+            chain = np.nonzero(on_side)[0]
+            chain = chain[np.argsort(pts[chain, 1 - a], kind="stable")]
+            seg.extend(zip(chain[:-1], chain[1:]))
+        return replace(
+            pslg,
+            segments=np.vstack([pslg.segments[keep], np.asarray(seg, np.int64).reshape(-1, 2)]),
+            segment_inclusion=np.concatenate([pslg.segment_inclusion[keep], np.full(len(seg), BOX_SEGMENT, np.int64)]),
+            segment_partner=np.full(int(keep.sum()) + len(seg), -1, np.int64),
+        )
     for a in (0, 1):
         b = 1 - a
         pairs = np.asarray(pslg.periodic_pairs[a])

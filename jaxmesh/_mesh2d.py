@@ -1,4 +1,4 @@
-"""The periodic, conforming 2D mesher (paper sections 4.3-4.5 and 4.7 in 2D).
+"""The conforming 2D mesher, periodic or not (paper sections 4.3-4.5 and 4.7 in 2D).
 
 Stages (timed in ``mesh.metadata["timings"]``):
 
@@ -17,6 +17,12 @@ Stages (timed in ``mesh.metadata["timings"]``):
 6. edge flips of non-constrained edges that raise the worse quality of their two triangles, then
    Delaunay refinement of what is still below ``min_angle`` (thin gaps between an interface and a
    box edge, shallow crossings), splits mirrored on the box and projected on the interfaces.
+
+Non-periodic microstructures (``ms.periodic`` False): the box clips every inclusion (the part
+outside is dropped, never wrapped), the four box sides get their own nodes between the corners and
+their crossings, box-edge nodes slide along their side alone, the interior nodes are clipped to the
+box (non-periodic quadtree, or a hex lattice without wrap) and splits of box segments are not
+mirrored; the result has ``periodic=False`` and no periodic pairs.
 
 Labels: flood fill across constrained edges; each component is voted on by the triangles along its
 interface segments (inside or outside that segment's own inclusion, its level set at the centroid).
@@ -44,8 +50,12 @@ from ._contours import (
     INTERFACE,
     PSLG,
     Arc,
+    assemble_box_pslg,
     assemble_pslg,
+    box_window_axes,
+    clip_loop,
     cut_loop,
+    extract_box_loops,
     extract_loops,
     rebuild_box_segments,
     resample_polyline,
@@ -208,8 +218,6 @@ def _as_microstructure(microstructure):
         )
     if ms.dim != 2:
         raise ValueError(f"expected a 2D microstructure, got dimension {ms.dim}; hint: mesh_2d meshes 2D RVEs only")
-    if not ms.periodic:
-        raise ValueError("expected a periodic microstructure, got periodic=False; hint: the 2D mesher is periodic")
     if len(ms.inclusions) == 0:
         raise ValueError("expected at least one inclusion, got none; hint: check the sign (negative inside)")
     return ms
@@ -246,13 +254,23 @@ def _resolve_size(ms, h, size_kwargs) -> _Size:
         if values.ndim != 2 or not np.all(np.isfinite(values)) or values.min() <= 0:
             raise ValueError(f"expected a 2D size field with positive finite values, got shape {values.shape}")
         fn = h.h_fn()
+        if not ms.periodic:
+            fn = _clamped_to_grid(fn, ms)
         return _Size(lambda p: np.asarray(fn(jnp.asarray(p, dtype=float))), fn, float(values.min()), h, "field")
     raise ValueError(f"expected h None, a float or a SizeField, got {type(h).__name__}; hint: e.g. h=0.02")
 
 
+def _clamped_to_grid(fn, ms):
+    """A non-periodic grid field seen as the level sets are: beyond the last node (x > (n - 1) L / n)
+    the edge value, not the periodic blend towards x = 0 that the grid interpolation makes."""
+    last = jnp.asarray([(n - 1) * L / n for n, L in zip(ms.grid_shape, ms.box)])
+    return lambda p: fn(jnp.clip(p, 0.0, last))
+
+
 # ----------------------------------------------------------------------------- stages 1-2
 def _interfaces(ms, levels, size: _Size, cfg: Mesh2DConfig) -> tuple[PSLG, dict]:
-    """Stage 1 + 2: cut, resampled, projected interface arcs and the periodic box-edge nodes."""
+    """Stage 1 + 2: cut, resampled, projected interface arcs and the box-edge nodes (periodic, or
+    each side of a non-periodic box on its own)."""
     box = np.asarray(ms.box, dtype=float)
     grid_step = float(np.min(box / np.asarray(ms.grid_shape)))
     arcs, crossings, residual = [], [], 0.0
@@ -261,15 +279,23 @@ def _interfaces(ms, levels, size: _Size, cfg: Mesh2DConfig) -> tuple[PSLG, dict]
         lo, hi = np.asarray(inc.lower, dtype=float), np.asarray(inc.upper, dtype=float)
         probe = lo + (hi - lo) * np.stack(np.meshgrid(*[np.linspace(0, 1, 5)] * 2, indexing="ij"), -1).reshape(-1, 2)
         step = min(grid_step, cfg.window_step * float(size.np_fn(probe).min()))
-        origin, shape = window_grid(lo, hi, step, 2 * grid_step + 3 * step, box)
-        ij = np.stack(np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij"), -1).reshape(-1, 2)
-        values = lvl.values(origin + ij * step).reshape(tuple(shape))
+        margin = 2 * grid_step + 3 * step
+        if ms.periodic:
+            origin, shape = window_grid(lo, hi, step, margin, box)
+            ij = np.stack(np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij"), -1).reshape(-1, 2)
+            values = lvl.values(origin + ij * step).reshape(tuple(shape))
+            loops, cut = extract_loops(values, origin, step, inc.id), cut_loop
+        else:
+            axes = box_window_axes(lo, hi, step, margin, box)
+            xy = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 2)
+            values = lvl.values(xy).reshape(len(axes[0]), len(axes[1]))
+            loops, cut = extract_box_loops(values, axes, box, inc.id), clip_loop
         mine = []
-        for loop in extract_loops(values, origin, step, inc.id):
+        for loop in loops:
             def refine(p, ax, lvl=lvl):
                 return lvl.project(p, free=np.eye(2)[1 - np.asarray(ax)])[0]
 
-            pieces, cross = cut_loop(loop, box, refine, inc.id)
+            pieces, cross = cut(loop, box, refine, inc.id)
             off = len(crossings)
             crossings.extend(cross)
             for arc in pieces:
@@ -293,7 +319,7 @@ def _interfaces(ms, levels, size: _Size, cfg: Mesh2DConfig) -> tuple[PSLG, dict]
                 a.points[f] = projected[at : at + len(f)]
                 at += len(f)
         arcs.extend(mine)
-    pslg = assemble_pslg(arcs, crossings, box, size.np_fn)
+    pslg = (assemble_pslg if ms.periodic else assemble_box_pslg)(arcs, crossings, box, size.np_fn)
     return pslg, {"n_crossings": len(crossings), "n_arcs": len(arcs), "projection_residual": residual}
 
 
@@ -328,9 +354,11 @@ def _interior_nodes(ms, pslg: PSLG, size: _Size, cfg: Mesh2DConfig, rng) -> np.n
             if cfg.interior == "quadtree":
                 raise
         else:
-            pts = np.asarray(periodic_octree_nodes(np.asarray(size.field.values), tuple(box)).points, dtype=float)
+            # non-periodic: the clamped size (as the mesher sees it), not the grid's periodic blend
+            h_grid = np.asarray(size.field.values) if ms.periodic else size.np_fn
+            pts = np.asarray(periodic_octree_nodes(h_grid, tuple(box), periodic=ms.periodic).points, dtype=float)
     if pts is None:
-        pts = _graded_hex(box, size, rng)
+        pts = _graded_hex(box, size, rng, periodic=ms.periodic)
     hp = size.np_fn(pts)
     pts = pts + cfg.jitter * hp[:, None] * rng.standard_normal(pts.shape)
     # interfaces and box edges are both segments of the PSLG: one distance test for all
@@ -339,24 +367,30 @@ def _interior_nodes(ms, pslg: PSLG, size: _Size, cfg: Mesh2DConfig, rng) -> np.n
     return pts[keep]
 
 
-def _hex(box, s, rng) -> np.ndarray:
-    """Hexagonal lattice of spacing s over the box, randomly offset."""
+def _hex(box, s, rng, periodic: bool = True) -> np.ndarray:
+    """Hexagonal lattice of spacing s over the box, randomly offset; periodic: rows wrap in x,
+    else the lattice overhangs the box by a spacing and is clipped to it (no gap along the sides)."""
     dy = s * np.sqrt(3.0) / 2.0
+    if not periodic:
+        rows = np.arange(-dy, box[1] + dy, dy) + rng.uniform(0, dy)
+        xs = np.arange(-s, box[0] + s, s) + rng.uniform(0, s)
+        pts = np.concatenate([np.stack([xs + 0.5 * s * (r % 2), np.full(xs.size, y)], 1) for r, y in enumerate(rows)])
+        return pts[np.all((pts >= 0) & (pts <= box), axis=1)]
     rows = np.arange(0.0, box[1], dy) + rng.uniform(0, dy)
     xs = np.arange(0.0, box[0], s) + rng.uniform(0, s)
     return np.concatenate([np.stack([(xs + 0.5 * s * (r % 2)) % box[0], np.full(xs.size, y)], 1)
                            for r, y in enumerate(rows[rows < box[1]])])
 
 
-def _graded_hex(box, size: _Size, rng, ratio: float = 1.5) -> np.ndarray:
+def _graded_hex(box, size: _Size, rng, ratio: float = 1.5, periodic: bool = True) -> np.ndarray:
     """Hex lattices of spacing h_min * ratio^k, each kept where h falls in [s_k, s_k * ratio);
     then, of two nodes closer than 0.7 min(h), the coarser goes. Uniform h: one plain lattice."""
     if size.field is None:
-        return _hex(box, size.h_min, rng)
+        return _hex(box, size.h_min, rng, periodic)
     h_max = float(np.max(np.asarray(size.field.values)))
     parts, s = [], size.h_min
     while True:
-        p = _hex(box, s, rng)
+        p = _hex(box, s, rng, periodic)
         hp = size.np_fn(p)
         last = s * ratio > h_max
         parts.append(p[(hp >= s / (1 + 1e-9)) & ((hp < s * ratio) | last)] if s > size.h_min else p[hp < s * ratio])
@@ -413,6 +447,10 @@ def _relax(points, pslg: PSLG, size: _Size, cfg: Mesh2DConfig):
     free = kind == 0
     eps = 1e-6 * size.h_min
     out[free] = np.clip(out[free], eps, box - eps)  # a free node never leaves the box
+    if not pslg.periodic:  # a side node stays exactly on its side, between the corners
+        a = axis[on_box]
+        out[on_box, a] = points[on_box, a]
+        out[on_box, 1 - a] = np.clip(out[on_box, 1 - a], eps, box[1 - a] - eps)
     info = {"stop_reason": res.stop_reason, "iterations": int(res.n_iterations),
             "retriangulations": int(res.n_retriangulations)}
     return out, info
@@ -448,19 +486,21 @@ def mesh_2d(
     grad: float | None = None,
     h_max: float | None = None,
 ):
-    """Periodic, conforming, labelled triangle mesh of a 2D microstructure.
+    """Conforming, labelled triangle mesh of a 2D microstructure, periodic or not (as it is).
 
     Args:
-        microstructure: a 2D periodic ``Microstructure`` (or a 2D level-set array, negative
-            inside, or an integer label image, turned into one).
+        microstructure: a 2D ``Microstructure`` (or a 2D level-set array, negative inside, or an
+            integer label image, turned into a periodic one). Non-periodic: the mesh covers
+            exactly the box, inclusions cut by it are clipped, there are no periodic pairs.
         h: target edge length: a float (uniform), a ``SizeField`` (``size_function``), or None for
             the size function with ``SizeParams(iis=..., nb_el=..., curv_alpha=..., grad=..., h_max=...)``
             (only the given ones; the others take SizeParams' defaults).
         config: :class:`Mesh2DConfig`. seed: random seed of the interior node jitter.
     Returns:
         ``Mesh`` with triangles (counter-clockwise), ``inclusion_id`` per triangle (0 = matrix),
-        ``periodic_pairs`` {0: (x=0 node, x=Lx node), 1: (y=0 node, y=Ly node)} and metadata
-        (timings per stage, counts, relaxation report).
+        ``periodic`` as the microstructure, ``periodic_pairs`` {0: (x=0 node, x=Lx node), 1: (y=0
+        node, y=Ly node)} ({} when not periodic) and metadata (timings per stage, counts,
+        relaxation report).
 
     Example:
         >>> ms = Microstructure.from_functions([sphere_sdf(jnp.array([0.5, 0.5]), 0.2)], (1.0, 1.0), (64, 64))
@@ -529,17 +569,19 @@ def mesh_2d(
         "relaxation": relax_info,
     }
     pairs = {a: np.asarray(p, dtype=np.int64) for a, p in pslg.periodic_pairs.items()}
-    return Mesh(points, tri, inclusion_id, tuple(float(b) for b in box), periodic=True, periodic_pairs=pairs,
+    return Mesh(points, tri, inclusion_id, tuple(float(b) for b in box), periodic=ms.periodic, periodic_pairs=pairs,
                 metadata=metadata)
 
 
-def mesh_file_2d(input_path, output_path, *, box=None, h=None, plot=None):
+def mesh_file_2d(input_path, output_path, *, box=None, h=None, plot=None, periodic=None):
     """Read a 2D input, mesh it, validate, write the mesh (atomically) and optionally a PNG.
 
     Args:
         input_path: any input ``load_input`` reads (.npy, .npz, .tif, ...).
         output_path: mesh file, format by extension (``Mesh.write``).
         box: optional (Lx, Ly). h: as in :func:`mesh_2d`. plot: optional PNG path.
+        periodic: overrides the file's periodic flag (None: the file's, else True; False: mesh a
+            non-periodic box).
     Returns:
         The ``Mesh``. Raises MeshingError (stage "validate") without writing anything when the
         mesh fails validation.
@@ -547,7 +589,7 @@ def mesh_file_2d(input_path, output_path, *, box=None, h=None, plot=None):
     from ._validate import validate
     from .io._read import load_input
 
-    ms = load_input(Path(input_path), box=box)
+    ms = load_input(Path(input_path), box=box, periodic=periodic)
     mesh = mesh_2d(ms, h=h)
     report = validate(mesh, ms)
     mesh.metadata["validation"] = report.to_dict()

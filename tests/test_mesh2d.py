@@ -1,5 +1,8 @@
-"""The periodic 2D mesher: contour cutting units, then whole meshes checked by the validator,
-quality, inclusion areas against analytic values, periodicity, labels, files, bad inputs."""
+"""The 2D mesher: contour cutting units, then whole meshes checked by the validator, quality,
+inclusion areas against analytic values, periodicity, labels, files, bad inputs; then the same for
+non-periodic boxes (inclusions clipped by the box, never wrapped)."""
+
+from dataclasses import replace
 
 import jax
 import jax.numpy as jnp
@@ -7,7 +10,21 @@ import meshio
 import numpy as np
 import pytest
 
-from jaxmesh._contours import assemble_pslg, cut_loop, edge_parameters, resample_polyline
+from jaxmesh._contours import (
+    BOX_EDGE,
+    BOX_SEGMENT,
+    FIXED,
+    assemble_box_pslg,
+    assemble_pslg,
+    box_window_axes,
+    clip_loop,
+    cut_loop,
+    edge_parameters,
+    extract_box_loops,
+    rebuild_box_segments,
+    resample_polyline,
+    split_segments,
+)
 from jaxmesh._mesh2d import Mesh2DConfig, mesh_2d, mesh_file_2d
 from jaxmesh._quality import cell_quality, min_angles, signed_volumes
 from jaxmesh._validate import validate
@@ -252,9 +269,6 @@ def test_bad_inputs():
         mesh_2d(ms, h=0.05, config={"relax": False})
     with pytest.raises(ValueError, match="2D"):
         mesh_2d("not a microstructure", h=0.05)
-    flat = Microstructure.from_functions([sphere_sdf(jnp.array([0.5, 0.5]), 0.2)], BOX, (32, 32), periodic=False)
-    with pytest.raises(ValueError, match="expected a periodic microstructure"):
-        mesh_2d(flat, h=0.05)
     ms3 = Microstructure.from_functions([sphere_sdf(jnp.array([0.5, 0.5, 0.5]), 0.3)], (1.0, 1.0, 1.0), (16, 16, 16))
     with pytest.raises(ValueError, match="expected a 2D microstructure"):
         mesh_2d(ms3, h=0.05)
@@ -280,3 +294,184 @@ def test_size_function_graded(interior):
     assert np.median(length / h_mid) == pytest.approx(1.0, abs=0.2)
     # the same through the size-function keywords (h=None)
     assert mesh_2d(ms, iis=0.04, nb_el=2, curv_alpha=0.3, config=Mesh2DConfig(interior=interior)).metadata["h"] == "field"
+
+
+# ----------------------------------------------------------------------------- non-periodic box
+def _box_loops(center, radius, step=0.01):
+    """Zero contours of a circle on its window clipped to the unit box (as mesh_2d samples it)."""
+    c = np.asarray(center)
+    axes = box_window_axes(c - radius, c + radius, step, 3 * step, BOX)
+    xy = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+    return axes, extract_box_loops(np.linalg.norm(xy - c, axis=-1) - radius, axes, BOX, 1)
+
+
+def test_clip_loop_corner_side_and_inside():
+    c, r = np.array([0.97, 0.03]), 0.2
+    axes, loops = _box_loops(c, r)
+    assert axes[0][-1] == 1.0 and axes[1][0] == 0.0 and axes[0][0] > 0 and axes[1][-1] < 1
+    arcs, crossings = [], []
+    for loop in loops:
+        a, x = clip_loop(loop, BOX, _circle_line_refine(c, r), 1)
+        arcs += a
+        crossings += x
+    # one arc from x = 1 to y = 0 at the analytic crossings; the part outside the box is gone
+    half = np.sqrt(r**2 - 0.03**2)
+    assert len(arcs) == 1 and len(crossings) == 2
+    assert sorted((x.axis, round(x.t, 12)) for x in crossings) == [(0, round(0.03 + half, 12)),
+                                                                  (1, round(0.97 - half, 12))]
+    arc = arcs[0]
+    assert {arc.start[1], arc.end[1]} == {0, 1}
+    assert np.all((arc.points >= 0) & (arc.points <= 1))
+    assert np.allclose(np.linalg.norm(arc.points[1:-1] - c, axis=1), r, atol=1e-3)
+    for end, p in ((arc.start, arc.points[0]), (arc.end, arc.points[-1])):
+        x = crossings[end[0]]
+        assert p[x.axis] == end[1] * BOX[x.axis] and p[1 - x.axis] == x.t
+    # a circle cut by one side: one arc ending twice on that side; a circle inside: one loop
+    arcs, crossings = clip_loop(_box_loops((0.5, 0.05), r)[1][0], BOX, _circle_line_refine((0.5, 0.05), r), 1)
+    assert len(arcs) == 1 and [(x.axis, arcs[0].start[1]) for x in crossings] == [(1, 0), (1, 0)]
+    assert arcs[0].end[1] == 0 and arcs[0].points[:, 1].max() < 0.26
+    arcs, crossings = clip_loop(_box_loops((0.5, 0.5), r)[1][0], BOX, _circle_line_refine((0.5, 0.5), r), 1)
+    assert len(arcs) == 1 and arcs[0].closed and not crossings
+
+
+def test_assemble_box_pslg_sides_are_independent():
+    c, r = np.array([0.97, 0.03]), 0.2
+    arcs, crossings = clip_loop(_box_loops(c, r)[1][0], BOX, _circle_line_refine(c, r), 1)
+    arcs = [replace(a, points=resample_polyline(a.points, False, lambda p: np.full(len(p), 0.05))) for a in arcs]
+    pslg = assemble_box_pslg(arcs, crossings, BOX, lambda p: np.full(len(p), 0.1))
+    assert not pslg.periodic and pslg.periodic_pairs == {} and np.all(pslg.segment_partner == -1)
+    pts, box_seg = pslg.points, pslg.segments[pslg.segment_inclusion == BOX_SEGMENT]
+    # each crossing is a node of its own side only: (1, 0.03 + half) but not (0, 0.03 + half)
+    fixed = pts[(pslg.node_kind == FIXED) & (pslg.node_axis >= 0)]
+    half = np.sqrt(r**2 - 0.03**2)
+    assert sorted(map(tuple, np.round(fixed, 12))) == [(round(0.97 - half, 12), 0.0), (1.0, round(0.03 + half, 12))]
+    # the box boundary: every box segment on one side, the four sides of total length 4
+    on = np.all((pts[box_seg] == 0.0) | (pts[box_seg] == 1.0), axis=1)
+    assert np.all(on.any(axis=1))
+    assert np.linalg.norm(np.diff(pts[box_seg], axis=1)[:, 0], axis=1).sum() == pytest.approx(4.0, abs=1e-12)
+    # the sides are meshed on their own: x = 0 has no crossing, x = 1 one, so the node counts differ
+    n_left = np.sum(pts[pslg.node_kind == BOX_EDGE, 0] == 0.0)
+    n_right = np.sum(pts[(pslg.node_kind == BOX_EDGE) | (pslg.node_kind == FIXED), 0] == 1.0)
+    assert n_left == 9 and n_right >= 10
+    # a split of a box segment is not mirrored, and rebuilding from the node order gives the same boundary
+    right = np.nonzero((pslg.segment_inclusion == BOX_SEGMENT) & np.all(pts[pslg.segments, 0] == 1.0, axis=1))[0][0]
+    split = split_segments(pslg, np.array([right]), lambda p, i: p)
+    new = split.points[pslg.n_points:]
+    assert len(new) == 1 and new[0, 0] == 1.0 and split.periodic_pairs == {}
+    rebuilt = rebuild_box_segments(split)
+    assert _box_segment_set(rebuilt) == _box_segment_set(split) and np.all(rebuilt.segment_partner == -1)
+
+
+def _box_segment_set(pslg):
+    return set(map(tuple, np.sort(pslg.segments[pslg.segment_inclusion == BOX_SEGMENT], axis=1).tolist()))
+
+
+def _clipped_disk_area(center, radius, box=BOX):
+    """Area of a disk inside the box [0, Lx] x [0, Ly] (quadrature of its chords along x)."""
+    from scipy.integrate import quad
+
+    cx, cy = center
+
+    def chord(x):
+        s = np.sqrt(max(radius**2 - (x - cx) ** 2, 0.0))
+        return max(0.0, min(box[1], cy + s) - max(0.0, cy - s))
+
+    lo, hi = max(0.0, cx - radius), min(box[0], cx + radius)
+    kinks = [x for x in (cx - radius, cx + radius, cx) if lo < x < hi]
+    kinks += [cx + sgn * np.sqrt(radius**2 - (cy - y) ** 2) for y in (0.0, box[1]) for sgn in (-1, 1)
+              if abs(cy - y) < radius and lo < cx + sgn * np.sqrt(radius**2 - (cy - y) ** 2) < hi]
+    return quad(chord, lo, hi, points=sorted(kinks) or None, epsabs=1e-13, limit=200)[0]
+
+
+def _interface_nodes(mesh):
+    ids = mesh.inclusion_id
+    lo = np.full(mesh.n_points, 10**6)
+    hi = np.zeros(mesh.n_points, dtype=np.int64)
+    for k in range(3):
+        np.minimum.at(lo, mesh.cells[:, k], ids)
+        np.maximum.at(hi, mesh.cells[:, k], ids)
+    return lo != hi
+
+
+def _check_flat(mesh, ms, h, circles, area_rtol, **kw):
+    """Non-periodic mesh: valid, quality as the periodic one, each inclusion within its own
+    circle (no wrapped copy anywhere) and of the area of that circle clipped by the box."""
+    assert mesh.periodic is False and not mesh.periodic_pairs
+    _check_mesh(mesh, ms, h, **kw)
+    area = signed_volumes(mesh.points, mesh.cells)
+    cent = mesh.points[mesh.cells].mean(axis=1)
+    for k in range(1, int(mesh.inclusion_id.max()) + 1):
+        mine = mesh.inclusion_id == k
+        # plain (not minimum-image) distances: a part wrapped to the opposite side is far from every circle
+        d = np.array([np.linalg.norm(cent[mine] - c, axis=1).max() - r for c, r in circles])
+        j = int(np.argmin(d))
+        assert d[j] < 0
+        assert area[mine].sum() == pytest.approx(_clipped_disk_area(*circles[j]), rel=area_rtol)
+    assert area[mesh.inclusion_id > 0].sum() == pytest.approx(sum(_clipped_disk_area(*c) for c in circles),
+                                                              rel=area_rtol)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("base", [(0.5, 0.05), (0.97, 0.03)], ids=["side", "corner"])
+def test_flat_circle_clipped_by_box(base, seed):
+    r = 0.2
+    center = tuple(np.asarray(base) + np.random.default_rng(seed).uniform(-0.01, 0.01, 2))
+    ms = Microstructure.from_functions([sphere_sdf(jnp.asarray(center), r)], BOX, (64, 64), periodic=False)
+    mesh = mesh_2d(ms, h=r / 8, seed=seed)
+    _check_flat(mesh, ms, r / 8, [(center, r)], area_rtol=0.01)
+    # interface nodes exactly on the circle (no periodic image) and none near the opposite sides
+    iface = mesh.points[_interface_nodes(mesh)]
+    assert np.abs(np.linalg.norm(iface - np.asarray(center), axis=1) - r).max() < 1e-10
+    assert iface[:, 1].max() < center[1] + r + 1e-12
+    if base[0] > 0.5:
+        assert iface[:, 0].min() > center[0] - r - 1e-12
+    # the cut part is missing: well below the full disk's area
+    area = signed_volumes(mesh.points, mesh.cells)[mesh.inclusion_id == 1].sum()
+    assert area < 0.95 * np.pi * r * r
+    assert mesh.metadata["relaxation"]["stop_reason"] in ("converged", "max_retriangulations", "max_iterations")
+
+
+_FLAT_CIRCLES = [((0.98, 0.5), 0.2), ((0.4, 0.3), 0.15), ((0.3, 0.97), 0.12), ((0.02, 0.05), 0.15),
+                 ((0.6, 0.75), 0.1)]  # cut by x = 1, inside, cut by y = 1, cut by the corner (0, 0), inside
+
+
+def _flat_field(n=64):
+    x = np.arange(n) / n  # node-centred: the last sample at (n - 1) / n, the field clamped beyond
+    X, Y = np.meshgrid(x, x, indexing="ij")
+    return np.min([np.hypot(X - c[0], Y - c[1]) - r for c, r in _FLAT_CIRCLES], axis=0)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_flat_levelset_grid(seed):
+    ms = Microstructure.from_levelset(_flat_field(), periodic=False)
+    assert len(ms.inclusions) == 5
+    mesh = mesh_2d(ms, h=0.025, seed=seed)
+    _check_flat(mesh, ms, 0.025, _FLAT_CIRCLES, area_rtol=0.02)
+    assert mesh.metadata["counts"]["n_crossings"] == 6
+
+
+def test_flat_labels():
+    ms = Microstructure.from_labels(_flat_field() < 0, periodic=False)
+    mesh = mesh_2d(ms, h=0.025)
+    # the level set of a voxel image is the distance to the voxels: areas within a few percent
+    _check_flat(mesh, ms, 0.025, _FLAT_CIRCLES, area_rtol=0.05)
+    assert set(np.unique(mesh.inclusion_id)) == set(range(6))
+
+
+@pytest.mark.parametrize("interior", ["hex", "quadtree"])
+def test_flat_size_function(interior):
+    from jaxmesh._sizing import SizeParams, size_function
+
+    ms = Microstructure.from_levelset(_flat_field(), periodic=False)
+    mesh = mesh_2d(ms, iis=0.04, nb_el=2, curv_alpha=0.3, config=Mesh2DConfig(interior=interior))
+    assert mesh.metadata["h"] == "field"
+    field = size_function(ms, SizeParams(iis=0.04, nb_el=2, curv_alpha=0.3))
+    _check_flat(mesh, ms, float(np.min(field.values)), _FLAT_CIRCLES, area_rtol=0.03)
+
+
+def test_mesh_file_2d_flat(tmp_path):
+    src, out = tmp_path / "box.npy", tmp_path / "box.vtu"
+    np.save(src, _flat_field(48))
+    mesh = mesh_file_2d(src, out, h=0.05, periodic=False)
+    assert out.exists() and mesh.periodic is False
+    assert mesh.metadata["validation"]["checks"]["periodic"]["skipped"]
