@@ -196,7 +196,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     from .io._read_mesh import read_mesh
 
     t0 = time.perf_counter()
-    mesh = read_mesh(args.mesh, box=_box_arg(args.box))
+    mesh = read_mesh(args.mesh, box=_box_arg(args.box), periodic=not args.no_periodic)
     ms = None
     if args.geometry:
         ms = load_input(args.geometry, box=_box_arg(args.box) or tuple(mesh.box), periodic=mesh.periodic)
@@ -257,12 +257,14 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--curv-alpha", type=float, default=None, help="curvature sensitivity: h = alpha / |kappa|")
     m.add_argument("--grad", type=float, default=None, help="gradient limit of the size function")
     m.add_argument("--h-max", type=float, default=None)
-    m.add_argument("--no-periodic", action="store_true")
+    m.add_argument("--no-periodic", action="store_true",
+                   help="the input is not periodic: inclusions are cut by the box, each face meshed on its own, "
+                        "no node pairs")
     m.add_argument("--max-elements", type=float, default=MeshConfig.max_elements,
                    help="stop before the surfaces when the size function asks for more tetrahedra than this "
                         "(default %(default).3g; 0: no limit)")
     m.add_argument("--backend", choices=("conforming", "tetwild"), default="conforming",
-                   help="3D volume mesher: conforming (default: exact surfaces, periodic) or tetwild (fTetWild: "
+                   help="3D volume mesher: conforming (default: exact surfaces, periodic or not) or tetwild (fTetWild: "
                         "robust to damaged surfaces, not conforming, not periodic; edge length --h or --iis)")
     m.add_argument("--seed", type=int, default=0)
     m.add_argument("--report", default=None, help="JSON report path")
@@ -274,6 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--geometry", default=None, help="the input the mesh was made from")
     v.add_argument("--box", type=float, nargs="+", default=None)
     v.add_argument("--report", default=None, help="JSON report path")
+    v.add_argument("--no-periodic", action="store_true", help="a plain box mesh: no periodic node pairs to check")
     v.set_defaults(func=_cmd_validate)
     return parser
 

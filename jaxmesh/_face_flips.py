@@ -108,20 +108,40 @@ def delaunay_interfaces(surface: SurfaceMesh) -> tuple[SurfaceMesh, int]:
     on = np.nonzero(surface.kind == INTERFACE)[0]
     tris[on], flips = lawson_flips(surface.points, tris[on], surface.sides[on, 0])
     out = SurfaceMesh(surface.points, tris, surface.sides, surface.kind, surface.node_inclusion, surface.box,
-                      surface.periodic_pairs, dict(surface.metadata))
+                      surface.periodic_pairs, dict(surface.metadata), surface.periodic)
     return out, flips
 
 
+def _flip_face(points: np.ndarray, face_tris: np.ndarray, regions: np.ndarray, axis: int) -> tuple[np.ndarray, int]:
+    """Lawson flips of one planar box face x_axis = const, its orientation kept; (triangles, flips)."""
+    uv = points[:, [i for i in range(3) if i != axis]]
+    sign = np.sign(_signed_area(uv, face_tris))
+    ccw = np.where(sign[:, None] < 0, face_tris[:, [0, 2, 1]], face_tris)
+    flipped, count = lawson_flips(np.column_stack([uv, np.zeros(len(uv))]), ccw, regions)
+    orient = np.sign(np.sum(sign))  # the face's orientation (outward normal) in the uv frame
+    return (flipped if orient > 0 else flipped[:, [0, 2, 1]]), count
+
+
 def delaunay_box_faces(surface: SurfaceMesh) -> tuple[SurfaceMesh, int]:
-    """Lawson-flip the three master box faces to 2D Delaunay and copy them onto the opposite faces.
+    """Lawson-flip the box faces to 2D Delaunay: the three master faces, copied onto the opposite
+    faces (periodic), or each of the six faces on its own (not periodic).
 
     Returns:
-        (SurfaceMesh with the same nodes and triangle count, number of flips on the master faces).
+        (SurfaceMesh with the same nodes and triangle count, number of flips on the flipped faces).
     """
     points, tris = surface.points, surface.triangles.copy()
     sides, kind = surface.sides.copy(), surface.kind
     box = np.asarray(surface.box, dtype=float)
     flips = 0
+    if not surface.periodic:
+        for axis in range(3):
+            for value in (0.0, box[axis]):
+                on = np.nonzero((kind == BOX_FACE) & np.all(points[tris][:, :, axis] == value, axis=1))[0]
+                tris[on], count = _flip_face(points, tris[on], sides[on, 0], axis)
+                flips += count
+        out = SurfaceMesh(points, tris, sides, kind, surface.node_inclusion, surface.box, {},
+                          dict(surface.metadata), False)
+        return out, flips
     for axis in range(3):
         pairs = surface.periodic_pairs.get(axis)
         if pairs is None or not len(pairs):
@@ -132,24 +152,21 @@ def delaunay_box_faces(surface: SurfaceMesh) -> tuple[SurfaceMesh, int]:
             np.nonzero((kind == BOX_FACE) & np.all(points[tris][:, :, axis] == value, axis=1))[0]
             for value in (0.0, box[axis])
         ]
-        lower = tris[on[0]]
-        sign = np.sign(_signed_area(uv, lower))
-        ccw = np.where(sign[:, None] < 0, lower[:, [0, 2, 1]], lower)
-        flipped, count = lawson_flips(np.column_stack([uv, np.zeros(len(uv))]), ccw, sides[on[0], 0])
+        flipped, count = _flip_face(points, tris[on[0]], sides[on[0], 0], axis)
         flips += count
         if not count:
             continue
-        orient = np.sign(np.sum(sign))  # the face's orientation (outward normal) in the uv frame
-        tris[on[0]] = flipped if orient > 0 else flipped[:, [0, 2, 1]]
+        tris[on[0]] = flipped
         # the L-face: the translate of the 0-face, facing the other way
         to_upper = np.full(len(points), -1, dtype=np.int64)
         to_upper[pairs[:, 0]] = pairs[:, 1]
-        upper = to_upper[flipped]
+        ccw = flipped if np.sum(_signed_area(uv, flipped)) > 0 else flipped[:, [0, 2, 1]]
+        upper = to_upper[ccw]
         if np.any(upper < 0) or len(on[1]) != len(on[0]):
             raise ValueError(f"box face x_{axis} = 0 does not match x_{axis} = L through the periodic pairs")
         upper_sign = np.sign(np.sum(_signed_area(uv, tris[on[1]])))
         tris[on[1]] = upper if upper_sign > 0 else upper[:, [0, 2, 1]]
         sides[on[1]] = sides[on[0]]
     out = SurfaceMesh(points, tris, sides, kind, surface.node_inclusion, surface.box,
-                      surface.periodic_pairs, dict(surface.metadata))
+                      surface.periodic_pairs, dict(surface.metadata), surface.periodic)
     return out, flips

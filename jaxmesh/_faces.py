@@ -74,12 +74,13 @@ class FaceSize(eqx.Module):
 
     h_fn: object
     cap: jax.Array  # (nb, nc) node-centred periodic samples of the cap over the face
+    plane: jax.Array  # the face's x_axis (0, or L on a non-periodic box)
     box2: tuple = eqx.field(static=True)
     axis: int = eqx.field(static=True)
 
     def __call__(self, uv):
         b, c = (self.axis + 1) % 3, (self.axis + 2) % 3
-        p = jnp.zeros((uv.shape[0], 3), uv.dtype).at[:, b].set(uv[:, 0]).at[:, c].set(uv[:, 1])
+        p = jnp.full((uv.shape[0], 3), self.plane, uv.dtype).at[:, b].set(uv[:, 0]).at[:, c].set(uv[:, 1])
         h = jnp.reshape(self.h_fn(p), uv.shape[:1])
         return jnp.minimum(h, interpolate_linear(self.cap.astype(uv.dtype), self.box2, uv))
 
@@ -105,7 +106,7 @@ def feature_spacing(points: np.ndarray, segments: np.ndarray, box) -> np.ndarray
     return np.minimum(spacing, np.maximum(gap, 0.5 * spacing))
 
 
-def _face_size(h_fn, axis: int, uv: np.ndarray, spacing: np.ndarray, grad: float, box2) -> FaceSize:
+def _face_size(h_fn, axis: int, plane: float, uv: np.ndarray, spacing: np.ndarray, grad: float, box2) -> FaceSize:
     """FaceSize with the cap min_j (spacing_j + grad |x - x_j|) sampled at half the finest spacing
     (at most 1024 samples per side); the k nearest nodes stand in for all of them."""
     keep = np.isfinite(spacing)
@@ -115,7 +116,7 @@ def _face_size(h_fn, axis: int, uv: np.ndarray, spacing: np.ndarray, grad: float
     n = [int(np.clip(np.ceil(2 * L / finest), 8, 1024)) for L in box2]
     grid = np.stack(np.meshgrid(*[np.arange(k) * L / k for k, L in zip(n, box2)], indexing="ij"), -1).reshape(-1, 2)
     cap = _spacing_cap(cKDTree(uv), spacing, grad, grid).reshape(n) if len(uv) else np.full(n, np.inf)
-    return FaceSize(h_fn, jnp.asarray(np.minimum(cap, 1e6)), box2, axis)
+    return FaceSize(h_fn, jnp.asarray(np.minimum(cap, 1e6)), jnp.asarray(float(plane)), box2, axis)
 
 
 def _spacing_cap(tree: cKDTree, spacing: np.ndarray, grad: float, points: np.ndarray) -> np.ndarray:
@@ -137,16 +138,19 @@ def trace_spacing(P: np.ndarray, iface_tris: np.ndarray, box) -> tuple[np.ndarra
     return nodes, sp[nodes]
 
 
-def _line_size(h_fn, box, nodes: np.ndarray, spacing: np.ndarray, grad: float):
+def _line_size(h_fn, box, nodes: np.ndarray, spacing: np.ndarray, grad: float, periodic: bool = True):
     """NumPy size along the box edges: h capped by the trace spacing grown at rate grad, with
-    periodic distances (the four parallel edges are one edge); the 8 nearest trace nodes decide."""
+    periodic distances when periodic (the four parallel edges are one edge); the 8 nearest trace
+    nodes decide."""
     L = np.asarray(box, float)
 
     def wrapped(x):
+        if not periodic:
+            return x
         w = wrap(x, L)
         return np.where(w >= L, 0.0, w)  # rounding can give L; cKDTree's periodic box is half-open
 
-    tree = cKDTree(wrapped(nodes), boxsize=L) if len(nodes) else None
+    tree = cKDTree(wrapped(nodes), boxsize=L if periodic else None) if len(nodes) else None
 
     def size(p):
         h = evaluate_size(h_fn, p)
@@ -155,29 +159,32 @@ def _line_size(h_fn, box, nodes: np.ndarray, spacing: np.ndarray, grad: float):
     return size
 
 
-def _edge_values(P: np.ndarray, axis: int, box, size) -> np.ndarray:
-    """Sorted coordinates of the nodes of the master box edge along ``axis``: 0, L, the interface
-    crossings of the edge lines, and nodes ~size apart between them (size: NumPy (m, 3) -> (m,))."""
+def _edge_values(P: np.ndarray, axis: int, box, size, at: dict | None = None) -> np.ndarray:
+    """Sorted coordinates of the nodes of a box edge along ``axis``: 0, L, the interface crossings,
+    and nodes ~size apart between them (size: NumPy (m, 3) -> (m,)). at: {other axis: 0 or L} picks
+    one of the four parallel edges (not periodic); None: the master edge, crossed where any of the
+    four is (periodic: they are one edge)."""
     L = np.asarray(box, float)
-    o = [k for k in range(3) if k != axis]
     on = np.ones(len(P), bool)
-    for k in o:
-        on &= (P[:, k] == 0.0) | (P[:, k] == L[k])
+    for k in (k for k in range(3) if k != axis):
+        on &= (P[:, k] == 0.0) | (P[:, k] == L[k]) if at is None else (P[:, k] == at[k])
     breaks = np.unique(np.concatenate([[0.0, L[axis]], P[on, axis]]))
 
     def line_point(t):
         q = np.zeros((len(t), 3))
         q[:, axis] = t
+        for k, v in (at or {}).items():
+            q[:, k] = v
         return q
 
     return edge_parameters(breaks, line_point, size)
 
 
-def _interior_nodes(uv_fixed, seg, h2, box2, clearance: float) -> np.ndarray:
-    """Face interior nodes: the vertices of a periodic quadtree refined to h2 (paper 4.3), less those
-    closer than clearance * h to a constrained segment or 0.8 h to a fixed node."""
+def _interior_nodes(uv_fixed, seg, h2, box2, clearance: float, periodic: bool = True) -> np.ndarray:
+    """Face interior nodes: the vertices of a (periodic) quadtree refined to h2 (paper 4.3), less
+    those closer than clearance * h to a constrained segment or 0.8 h to a fixed node."""
     h_np = lambda q: evaluate_size(h2, q)  # noqa: E731
-    nodes = periodic_octree_nodes(h_np, box2).points
+    nodes = periodic_octree_nodes(h_np, box2, periodic=periodic).points
     nodes = nodes[np.all(nodes < np.asarray(box2), axis=1)]  # the upper-border copies are fixed nodes
     if len(nodes) == 0:
         return nodes
@@ -253,21 +260,26 @@ def _smooth(uv, tri, nf: int, iters: int = 5):
     return uv
 
 
-def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn, config: SurfaceConfig):
-    """Mesh the master face x_axis = 0 and its copy at L; returns (triangles (m, 3), sides (m, 2))."""
+def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn, config: SurfaceConfig,
+               side: float = 0.0):
+    """Mesh the face x_axis = side (not periodic), or the master face x_axis = 0 and its copy at L
+    (periodic). edge_vals(line_axis, at): node coordinates of the box edge along line_axis at
+    {axis: value}. Returns (triangles (m, 3), sides (m, 2))."""
+    periodic = ms.periodic
     L = np.asarray(ms.box, float)
     a, b, c = axis, (axis + 1) % 3, (axis + 2) % 3
-    P = reg.array()
     # box edges of the face: lines along c at x_b in {0, L_b}, lines along b at x_c in {0, L_c}
     for line_axis, other in ((c, b), (b, c)):
         for v in (0.0, L[other]):
-            q = np.zeros((len(edge_vals[line_axis]), 3))
-            q[:, line_axis], q[:, other] = edge_vals[line_axis], v
+            vals = edge_vals(line_axis, {a: side, other: v})
+            q = np.zeros((len(vals), 3))
+            q[:, line_axis], q[:, other], q[:, a] = vals, v, side
             reg.add(q)
-            q[:, a] = L[a]
-            reg.add(q)
+            if periodic:
+                q[:, a] = L[a]
+                reg.add(q)
     P = reg.array()
-    face = np.flatnonzero(P[:, a] == 0.0)
+    face = np.flatnonzero(P[:, a] == side)
     local = -np.ones(len(P), np.int64)
     local[face] = np.arange(len(face))
     segs = []
@@ -276,14 +288,14 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
             on = face[P[face, other] == v]
             on = on[np.argsort(P[on, line_axis])]
             segs.append(np.stack([on[:-1], on[1:]], axis=1))
-    # trace segments: interface edges on x_a = 0, and those on x_a = L moved to their 0-copy
+    # trace segments: interface edges on the face, and (periodic) those on x_a = L moved to their 0-copy
     e = np.concatenate([iface_tris[:, [0, 1]], iface_tris[:, [1, 2]], iface_tris[:, [2, 0]]])
-    for side in (0.0, L[a]):
-        m = (P[e[:, 0], a] == side) & (P[e[:, 1], a] == side)
+    for plane in ((0.0, L[a]) if periodic else (side,)):
+        m = (P[e[:, 0], a] == plane) & (P[e[:, 1], a] == plane)
         s = e[m]
-        if side != 0.0:
+        if plane != side:
             q = P[s.reshape(-1)].copy()
-            q[:, a] = 0.0
+            q[:, a] = side
             s = reg.lookup(q).reshape(-1, 2)
             if (s < 0).any():
                 raise MeshingError("faces", f"face {axis}: a trace on x_{axis} = L has no translate on x_{axis} = 0")
@@ -293,8 +305,8 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
     seg = seg[seg[:, 0] != seg[:, 1]]
     uv_fixed = P[face][:, [b, c]]
     box2 = (L[b], L[c])
-    h2 = _face_size(h_fn, axis, uv_fixed, feature_spacing(uv_fixed, seg, box2), config.trace_grading, box2)
-    lat = _interior_nodes(uv_fixed, seg, h2, box2, config.face_clearance)
+    h2 = _face_size(h_fn, axis, side, uv_fixed, feature_spacing(uv_fixed, seg, box2), config.trace_grading, box2)
+    lat = _interior_nodes(uv_fixed, seg, h2, box2, config.face_clearance, periodic)
     uv = np.vstack([uv_fixed, lat])
     nf = len(uv_fixed)
     tri_fn = lambda p: constrained_delaunay(p, seg)  # noqa: E731
@@ -328,25 +340,26 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
                            ids[0] if len(ids) == 1 else None)
     ncomp, comp = flood_fill(tri, seg, len(uv))
     cen = uv[tri].mean(axis=1)
-    c3 = np.zeros((len(tri), 3))
+    c3 = np.full((len(tri), 3), side)
     c3[:, b], c3[:, c] = cen[:, 0], cen[:, 1]
     labels, _ = component_labels(comp, ms.label(c3), n_components=ncomp)
     region = labels[comp]
-    # 3D nodes: the fixed ones exist; interior ones are new on both faces
-    q0 = np.zeros((len(lat), 3))
+    # 3D nodes: the fixed ones exist; interior ones are new (on both faces when periodic)
+    q0 = np.full((len(lat), 3), side)
     q0[:, b], q0[:, c] = uv[nf:, 0], uv[nf:, 1]
+    ids0 = np.concatenate([face, reg.add(q0)])
+    # CCW in (b, c) is +e_a: reverse at x_a = 0 so that the normal leaves the box
+    sides = np.stack([region, np.full(len(tri), OUTSIDE)], axis=1)
+    if not periodic:
+        return (ids0[tri][:, ::-1] if side == 0.0 else ids0[tri]), sides
     q1 = q0.copy()
     q1[:, a] = L[a]
-    ids0 = np.concatenate([face, reg.add(q0)])
     q = P[face].copy()
     q[:, a] = L[a]
     ids1 = np.concatenate([reg.lookup(q), reg.add(q1)])
     if (ids1 < 0).any():
         raise MeshingError("faces", f"face {axis}: a node of x_{axis} = 0 has no translate on x_{axis} = L")
-    t0 = ids0[tri][:, ::-1]  # CCW in (b, c) is +e_a: reverse so that the normal leaves the box at x_a = 0
-    t1 = ids1[tri]
-    sides = np.stack([region, np.full(len(tri), OUTSIDE)], axis=1)
-    return np.vstack([t0, t1]), np.vstack([sides, sides])
+    return np.vstack([ids0[tri][:, ::-1], ids1[tri]]), np.vstack([sides, sides])
 
 
 def _periodic_pairs(reg: _Registry, box) -> dict[int, np.ndarray]:
@@ -364,10 +377,14 @@ def _periodic_pairs(reg: _Registry, box) -> dict[int, np.ndarray]:
 
 
 def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig()) -> SurfaceMesh:
-    """Closed, periodic surface mesh of a 3D RVE: inclusion interfaces cut by the box plus box faces.
+    """Closed surface mesh of a 3D RVE: inclusion interfaces cut by the box plus box faces.
+
+    Periodic microstructure: the pieces outside the box wrap into it, the master faces are meshed
+    once and copied, and the result has periodic pairs. Not periodic: the pieces outside are
+    dropped and each of the six faces (and twelve edges) is meshed on its own.
 
     Args:
-        microstructure: a periodic 3D Microstructure (geometry.Microstructure).
+        microstructure: a 3D Microstructure (geometry.Microstructure), periodic or not.
         h: target edge length, a float > 0 or a JAX size callable points (m, 3) -> (m,) (e.g. a SizeField).
         config: SurfaceConfig (the face nodes are deterministic: no seed).
     Returns:
@@ -382,19 +399,20 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig())
     if not (hasattr(microstructure, "inclusions") and hasattr(microstructure, "box")):
         raise ValueError(f"microstructure: expected a jaxmesh Microstructure, got {type(microstructure).__name__}. "
                          "Hint: Microstructure.from_functions / from_levelset.")
-    if microstructure.dim != 3 or not microstructure.periodic:
-        raise ValueError(f"mesh_surfaces expected a periodic 3D microstructure, got dim={microstructure.dim}, "
-                         f"periodic={microstructure.periodic}. Hint: mesh_2d handles 2D.")
+    if microstructure.dim != 3:
+        raise ValueError(f"mesh_surfaces expected a 3D microstructure, got dim={microstructure.dim}. "
+                         "Hint: mesh_2d handles 2D.")
     if not isinstance(config, SurfaceConfig):
         raise ValueError(f"config: expected SurfaceConfig, got {type(config).__name__}.")
-    box = microstructure.box
-    check_clear_of_images(microstructure.inclusions, box)
-    h_fn = as_size_fn(h, box)
+    box, periodic = microstructure.box, microstructure.periodic
+    if periodic:
+        check_clear_of_images(microstructure.inclusions, box)
+    h_fn = as_size_fn(h, box, periodic)
     t0 = time.perf_counter()
     reg = _Registry()
     tris, sides, kinds = [], [], []
     for inc in microstructure.inclusions:
-        out = mesh_inclusion(inc, h_fn, box, config)
+        out = mesh_inclusion(inc, h_fn, box, config, periodic)
         t = reg.add(out["points"], inc.id)[out["triangles"]]
         # pieces cut at a box edge can share a point: (a, a, b) has zero area, and dropping it
         # leaves the edge a-b in its two neighbours
@@ -406,18 +424,33 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig())
     iface = np.vstack(tris) if tris else np.zeros((0, 3), np.int64)
     P = reg.array()
     tnodes, tsp = trace_spacing(P, iface, box)
-    line_size = _line_size(h_fn, box, P[tnodes], tsp, config.trace_grading)
-    edge_vals = [_edge_values(P, a, box, line_size) for a in range(3)]
+    line_size = _line_size(h_fn, box, P[tnodes], tsp, config.trace_grading, periodic)
+    # every box edge from the interface nodes alone, before any face adds nodes to it
+    if periodic:
+        masters = [_edge_values(P, a, box, line_size) for a in range(3)]
+        edge_vals = lambda line_axis, at: masters[line_axis]  # noqa: E731
+    else:
+        L = np.asarray(box, float)
+        edges = {}
+        for a in range(3):
+            o1, o2 = (k for k in range(3) if k != a)
+            for v1 in (0.0, L[o1]):
+                for v2 in (0.0, L[o2]):
+                    edges[a, v1, v2] = _edge_values(P, a, box, line_size, {o1: v1, o2: v2})
+        edge_vals = lambda line_axis, at: edges[(line_axis, *(at[k] for k in sorted(at)))]  # noqa: E731
     for a in range(3):
-        ft, fs = _mesh_face(a, reg, iface, edge_vals, microstructure, h_fn, config)
-        tris.append(ft)
-        sides.append(fs)
-        kinds.append(np.full(len(ft), BOX_FACE))
+        for side in ((0.0,) if periodic else (0.0, float(box[a]))):
+            ft, fs = _mesh_face(a, reg, iface, edge_vals, microstructure, h_fn, config, side)
+            tris.append(ft)
+            sides.append(fs)
+            kinds.append(np.full(len(ft), BOX_FACE))
     t2 = time.perf_counter()
     mesh = SurfaceMesh(
         points=reg.array(), triangles=np.vstack(tris), sides=np.vstack(sides), kind=np.concatenate(kinds),
-        node_inclusion=np.asarray(reg.inclusion, np.int64), box=box, periodic_pairs=_periodic_pairs(reg, box),
+        node_inclusion=np.asarray(reg.inclusion, np.int64), box=box,
+        periodic_pairs=_periodic_pairs(reg, box) if periodic else {},
         metadata={"n_inclusions": len(microstructure.inclusions), "time_interfaces": t1 - t0, "time_faces": t2 - t1},
+        periodic=periodic,
     )
     if config.check_intersections:
         bad = intersecting_pairs(mesh.points, mesh.triangles)

@@ -1,4 +1,4 @@
-"""One call from a microstructure (or an input file) to a validated periodic mesh.
+"""One call from a microstructure (or an input file) to a validated mesh (periodic by default).
 
 Stages (paper 4.1): size function -> inclusion surfaces and box faces -> octree interior nodes ->
 conforming tetrahedralisation, labels, relaxation, sliver removal. 2D inputs go to the 2D mesher.
@@ -38,7 +38,7 @@ class MeshConfig:
         max_elements: refuse (ValueError, before the surfaces) a 3D conforming mesh whose size function
             predicts more tetrahedra than this; None: no limit. The estimate is
             _TETS_PER_PREDICTED * c * integral of h^-3 (`cellwise_element_count`).
-        backend: 3D volume mesher. "conforming" (default): keeps every surface triangle, periodic.
+        backend: 3D volume mesher. "conforming" (default): keeps every surface triangle, periodic or not.
             "tetwild": fTetWild (pytetwild) on the marching-cubes surface of the grid at edge length
             h (or iis), robust to damaged surfaces but NOT conforming (interface nodes only near the
             level set), NOT periodic (no node pairs) and labelled by the field at the centroids.
@@ -143,10 +143,10 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
 
     t = time.perf_counter()
     ms = _as_microstructure(source, box=box, periodic=config.periodic)
-    if not ms.periodic and not (ms.dim == 3 and config.backend == "tetwild"):
-        raise ValueError("the conforming mesher expected a periodic microstructure, got periodic=False; hint: "
-                         "mesh a non-periodic 3D field with backend 'tetwild' (--backend tetwild: valid, but not "
-                         "conforming), or sample a periodic cell")
+    if config.backend == "conforming" and ms.periodic != config.periodic:
+        raise ValueError(f"MeshConfig.periodic is {config.periodic} but the microstructure has periodic={ms.periodic} "
+                         "(its inclusions are connected across the faces only when periodic); hint: build it with "
+                         "the same flag (from_levelset(..., periodic=...)) or set MeshConfig(periodic=...) to match")
     _check_sizes_against_box(config, ms.box)
     t = stage("input", t, f"{ms.dim}D, {len(ms.inclusions)} inclusions, grid {tuple(ms.grid_shape)}")
 
@@ -192,11 +192,12 @@ def _warn_if_float32() -> None:
 
 def _mesh_3d(ms, config: MeshConfig, stage, t):
     from ._faces import mesh_surfaces
-    from ._surface import check_clear_of_images, evaluate_size
+    from ._surface import as_size_fn, check_clear_of_images, evaluate_size
     from ._volume import tetrahedralize
     from ._volume_recover import levelset_projector
 
-    check_clear_of_images(ms.inclusions, ms.box)  # before the size function: fail fast
+    if ms.periodic:
+        check_clear_of_images(ms.inclusions, ms.box)  # before the size function: fail fast
     if config.h is not None:
         h_jax = float(config.h)
         h_np = lambda p: np.full(len(p), float(config.h))  # noqa: E731
@@ -209,7 +210,8 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
 
         field = size_function(ms, SizeParams(**config.size_kwargs()))
         h_jax = field
-        h_np = lambda p: evaluate_size(field, p)  # noqa: E731  (compiled once per size bucket, not op by op)
+        h_box = field if ms.periodic else as_size_fn(field, ms.box, periodic=False)  # clamped at the far faces
+        h_np = lambda p: evaluate_size(h_box, p)  # noqa: E731  (compiled once per size bucket, not op by op)
         values = np.asarray(field.values)
         predicted = cellwise_element_count(values, ms.box)
         t = stage("size", t, f"h in [{values.min():.4f}, {values.max():.4f}], "

@@ -111,20 +111,32 @@ class ConstantSize(eqx.Module):
 
 
 class WrappedSize(eqx.Module):
-    """h_fn evaluated at the points wrapped into the box (unwrapped surface coordinates)."""
+    """h_fn evaluated at the points wrapped into the box (unwrapped surface coordinates), or, when
+    not periodic, clamped into [0, upper] (upper: the last grid node of a sampled size field, whose
+    periodic interpolation would blend the far side in beyond it)."""
 
     h_fn: Callable
     box: tuple[float, ...] = eqx.field(static=True)
+    upper: tuple[float, ...] | None = eqx.field(static=True, default=None)  # None: periodic
 
     def __call__(self, points):
-        L = jnp.asarray(self.box, dtype=points.dtype)
-        return jnp.reshape(self.h_fn(points - L * jnp.floor(points / L)), points.shape[:1])
+        if self.upper is None:
+            L = jnp.asarray(self.box, dtype=points.dtype)
+            inside = points - L * jnp.floor(points / L)
+        else:
+            inside = jnp.clip(points, 0.0, jnp.asarray(self.upper, dtype=points.dtype))
+        return jnp.reshape(self.h_fn(inside), points.shape[:1])
 
 
-def as_size_fn(h, box) -> Callable:
+def as_size_fn(h, box, periodic: bool = True) -> Callable:
     """A JAX size callable from a positive float or a callable points (m, d) -> (m,)."""
     if callable(h):
-        return WrappedSize(h, tuple(float(b) for b in box))
+        box = tuple(float(b) for b in box)
+        if periodic:
+            return WrappedSize(h, box)
+        shape = np.shape(getattr(h, "values", ()))
+        upper = tuple(L * (n - 1) / n for L, n in zip(box, shape)) if len(shape) == len(box) else box
+        return WrappedSize(h, box, upper)
     if isinstance(h, (int, float, np.floating, np.integer)) and np.isfinite(h) and h > 0:
         return ConstantSize(jnp.asarray(float(h)))
     raise ValueError(f"h: expected a float > 0 or a callable points (m, 3) -> (m,), got {h!r}. Hint: h = radius / 4.")
@@ -199,11 +211,12 @@ def check_clear_of_images(inclusions, box) -> None:
                                "mesher needs every inclusion clear of its images", inc.id)
 
 
-def extract(phi_fn, lower, upper, step: float, box):
+def extract(phi_fn, lower, upper, step: float, box, periodic: bool = True):
     """Marching cubes of one inclusion on a window around its (unwrapped) bounds.
 
-    The window stays within half a box of the inclusion centre: beyond it the periodic level set
-    shows the next periodic image, which would leave an open piece of surface on the window edge.
+    Periodic: the window stays within half a box of the inclusion centre: beyond it the periodic
+    level set shows the next periodic image, which would leave an open piece of surface on the
+    window edge. Not periodic: the window is the bounds plus 2.5 steps (no images).
     Per axis, the sample spacing is at most `step` and at most the margin around the bounds.
 
     Returns:
@@ -211,7 +224,7 @@ def extract(phi_fn, lower, upper, step: float, box):
     """
     lower, upper, L = (np.asarray(v, float) for v in (lower, upper, box))
     centre, half = (lower + upper) / 2, (upper - lower) / 2
-    margin = np.minimum(2.5 * step, 0.5 * L - half - 1e-6 * L)
+    margin = np.minimum(2.5 * step, 0.5 * L - half - 1e-6 * L) if periodic else np.full(3, 2.5 * step)
     if (margin < 0.05 * step).any():
         raise MeshingError("surfaces", f"the inclusion spans {np.max(2 * half / L):.0%} of the box along an axis; "
                            "an inclusion must fit in half the box around its centre (with a margin)")
@@ -440,6 +453,40 @@ def wrap_pieces(points, tris, on_plane, box):
     return p, inv.reshape(-1, 3).astype(np.int64), src
 
 
+class BoxCapped(eqx.Module):
+    """An inclusion's level set closed off `cap` beyond the box planes (not periodic): the
+    intersection, rounded with radius cap / 2, with the box grown by cap. Equal to phi_fn up to
+    cap / 2 beyond the planes, where the box cuts it; the rest is dropped after the cut. A grid
+    inclusion cut by the domain boundary continues as an extrusion beyond it, which is not closed."""
+
+    phi_fn: Callable
+    box: tuple[float, ...] = eqx.field(static=True)
+    cap: jax.Array
+
+    def __call__(self, points):
+        points = jnp.asarray(points)
+        phi = jnp.reshape(self.phi_fn(points), points.shape[:-1])
+        r = 0.5 * self.cap
+        for a, L in enumerate(self.box):
+            for beyond in (-points[..., a] - self.cap, points[..., a] - L - self.cap):
+                u = jnp.maximum(jnp.stack([r + phi, r + beyond], axis=-1), 0.0)
+                sq = jnp.sum(u * u, axis=-1)
+                # rounded intersection (a safe norm: its gradient is finite where u = 0)
+                norm = jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
+                phi = jnp.minimum(-r, jnp.maximum(phi, beyond)) + norm
+        return phi
+
+
+def inside_pieces(points, tris, on_plane, box):
+    """The triangles of a cut surface inside the box (cell 0), the others dropped; plane
+    coordinates become exactly 0 or L. Returns (points (m, 3), tris (t, 3), source (m,))."""
+    L = np.asarray(box, float)
+    tris = tris[(triangle_cells(points, tris, box) == 0).all(axis=1)]
+    src, inv = np.unique(tris.reshape(-1), return_inverse=True)
+    p = np.where(on_plane[src], np.round(points[src] / L) * L, points[src])
+    return p, inv.reshape(-1, 3).astype(np.int64), src
+
+
 _MC_ATTEMPTS = 3  # marching-cubes grids tried per inclusion, each up to 4x finer
 _MIN_CAP_DEPTH = 0.01  # fraction of h: shallower caps beyond a box plane are not meshed
 
@@ -495,8 +542,9 @@ def settle_caps(points, phi_fn, h_fn, box, newton_steps: int):
     return points
 
 
-def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()):
-    """Closed surface of one inclusion, improved, cut by the box and wrapped into it.
+def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig(), periodic: bool = True):
+    """Closed surface of one inclusion, improved, cut by the box and wrapped into it (periodic), or
+    with the pieces outside the box dropped (not periodic).
 
     Args:
         inclusion: geometry Inclusion (phi_fn, lower, upper unwrapped bounds).
@@ -506,11 +554,20 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
     """
     phi_fn = inclusion.phi_fn
     lower, upper = np.asarray(inclusion.lower, float), np.asarray(inclusion.upper, float)
+    L = np.asarray(box, float)
     centre = jnp.asarray(((lower + upper) / 2)[None])
     h0 = float(evaluate_size(h_fn, np.asarray(centre))[0])
     step = min(config.mc_step * h0, float(np.min(upper - lower)) / 4)
+    if not periodic:
+        cap = 2.0 * step
+        phi_fn = BoxCapped(phi_fn, tuple(float(v) for v in L), jnp.asarray(cap))
+        # a grid inclusion's bounds stop at the last grid node, its surface continues beyond it
+        lower = np.where(lower < cap, -cap, lower)
+        upper = np.where(upper > L - cap, L + cap, upper)
+        if (upper <= lower).any():
+            raise MeshingError("surfaces", "the inclusion lies outside the box", inclusion.id)
     for _ in range(_MC_ATTEMPTS):
-        raw, tris = extract(phi_fn, lower, upper, step, box)
+        raw, tris = extract(phi_fn, lower, upper, step, box, periodic)
         if len(tris) < 4:
             raise MeshingError("surfaces", "marching cubes found no closed surface", inclusion.id)
         edge_use = np.bincount(half_edges(tris, len(raw))[1].reshape(-1))
@@ -528,7 +585,6 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
         step = finer
     on_plane = np.zeros(pts.shape, bool)
     pts, tris, on_plane = improve(pts, tris, on_plane, phi_fn, h_fn, box, config, cut=False)
-    L = np.asarray(box, float)
     if (pts.min(0) < lower - 0.25 * L).any() or (pts.max(0) > upper + 0.25 * L).any():
         raise MeshingError("surfaces", "surface nodes left the inclusion's neighbourhood during relaxation "
                            "(a degenerate level set? check the input near this inclusion)", inclusion.id)
@@ -544,5 +600,8 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
         else:  # last resort: cut what still straddles without snapping
             pts, tris, on_plane = cut_by_box(pts, tris, on_plane, phi_fn, box, h_fn,
                                              dataclasses.replace(config, snap_fraction=0.0))
-    wp, wt, src = wrap_pieces(pts, tris, on_plane, box)
+    if periodic:
+        wp, wt, src = wrap_pieces(pts, tris, on_plane, box)
+    else:
+        wp, wt, src = inside_pieces(pts, tris, on_plane, box)
     return {"points": wp, "triangles": wt, "source": src, "unwrapped_points": pts, "unwrapped_triangles": tris}

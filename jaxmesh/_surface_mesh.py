@@ -29,6 +29,8 @@ class SurfaceMesh:
         box: box lengths.
         periodic_pairs: axis -> (k, 2) int64 (node on the 0-face, its exact translate on the L-face).
         metadata: counts, timings, parameters.
+        periodic: opposite faces are translates (periodic_pairs cover them); False: a plain box,
+            each face meshed on its own, no pairs.
     """
 
     points: np.ndarray
@@ -39,6 +41,7 @@ class SurfaceMesh:
     box: tuple[float, ...]
     periodic_pairs: dict[int, np.ndarray] = field(default_factory=dict)
     metadata: dict = field(default_factory=dict)
+    periodic: bool = True
 
     def __post_init__(self):
         self.points = np.asarray(self.points, dtype=np.float64)

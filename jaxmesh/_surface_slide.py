@@ -30,7 +30,7 @@ SECANT_STEPS, PHI_TOL = 8, 1e-13
 
 
 class SurfaceSlide:
-    """The surface nodes of a periodic surface mesh that may slide during the volume smoothing.
+    """The surface nodes of a surface mesh that may slide during the volume smoothing.
 
     Args:
         points: (n, 3) mesh points (the surface nodes first).
@@ -38,15 +38,17 @@ class SurfaceSlide:
         box: box lengths. phi_fn: NumPy global level set points (k, 3) -> (k,) (negative inside).
         periodic_pairs: axis -> (k, 2) (node on x_a = 0, its translate on x_a = L); the face nodes of
             those pairs slide too (None: only interface nodes).
+        periodic: False: a plain box; every node on one face (and no inclusion) slides in its plane alone.
     Attributes:
         mask: (n,) bool, the sliding nodes: interface nodes on no box plane, and box-face nodes of the
-            0-faces on one plane only (their copies follow; they are not in the mask).
+            0-faces on one plane only (their copies follow; they are not in the mask), or of any face
+            when not periodic.
         partner: (n,) int64, the copy on x_a = L of a sliding 0-face node, else -1.
         shift: (n, 3) that copy's position minus the node's (L e_a).
     """
 
     def __init__(self, points: np.ndarray, triangles: np.ndarray, node_inclusion: np.ndarray, box,
-                 phi_fn: Callable, periodic_pairs: dict | None = None):
+                 phi_fn: Callable, periodic_pairs: dict | None = None, periodic: bool = True):
         n, ns = len(points), len(node_inclusion)
         box = np.asarray(box, dtype=float)
         planes = on_box_planes(points[:ns], box)  # (ns, 3, 2)
@@ -58,6 +60,10 @@ class SurfaceSlide:
         self.normals = np.zeros((n, 3))  # unit gradients of phi at the first positions; e_a on faces
         self.grad_norm = np.ones(n)
         one_plane = (planes.sum(axis=(1, 2)) == 1) & (np.asarray(node_inclusion) == 0)
+        if not periodic:  # every face node slides in its plane on its own
+            face = np.flatnonzero(one_plane)
+            self.mask[face] = True
+            self.normals[face, np.argmax(planes[face].any(axis=2), axis=1)] = 1.0
         for a, pairs in (periodic_pairs or {}).items():
             pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
             u, v = pairs[:, 0], pairs[:, 1]

@@ -354,7 +354,7 @@ def tetrahedralize(surface: SurfaceMesh, interior_points: np.ndarray | None = No
                    config: VolumeConfig = VolumeConfig(), project_fn: Callable | None = None,
                    label_fn: Callable | None = None, phi_fn: Callable | None = None,
                    h_jax_fn: Callable | None = None, return_surface: bool = False):
-    """Tetrahedral mesh of a periodic RVE that contains every (possibly refined) surface triangle.
+    """Tetrahedral mesh of an RVE (periodic or not) that contains every (possibly refined) surface triangle.
 
     Args:
         surface: SurfaceMesh (interfaces + box faces, periodic pairs).
@@ -423,7 +423,7 @@ def _make_mesh(points, cells, surface, meta) -> Mesh:
                       "n_surface_points": surface.n_points, "n_surface_triangles": surface.n_triangles}
     meta.setdefault("times", {})["labels"] = time.perf_counter() - t
     pairs = {a: np.asarray(p, dtype=np.int64) for a, p in surface.periodic_pairs.items()} or None
-    return Mesh(points, cells, ids, surface.box, periodic=True, periodic_pairs=pairs, metadata=meta)
+    return Mesh(points, cells, ids, surface.box, periodic=surface.periodic, periodic_pairs=pairs, metadata=meta)
 
 
 def check_labels(mesh: Mesh, surface: SurfaceMesh, label_fn: Callable, phi_fn: Callable | None = None) -> int:

@@ -248,8 +248,8 @@ def split_edges(surface: SurfaceMesh, edges: np.ndarray, project_fn: Callable | 
     Interface edges: split at a point of the chord projected onto its inclusion's level set with
     project_fn (box-plane coordinates locked), the midpoint unless that leaves the box or nears a
     box plane (`_interface_split_point`); an edge with no such point inside the box stays unsplit.
-    Box-face edges: the midpoint stays on the plane(s) and every periodic image of the edge is split
-    at the translated midpoint; periodic_pairs are extended.
+    Box-face edges: the midpoint stays on the plane(s) and (periodic surface) every periodic image
+    of the edge is split at the translated midpoint; periodic_pairs are extended.
 
     Args:
         surface: the SurfaceMesh. edges: (k, 2) node ids of surface edges.
@@ -290,7 +290,7 @@ def split_edges(surface: SurfaceMesh, edges: np.ndarray, project_fn: Callable | 
                 continue
         # the edge and its periodic images: (u, v, new point) for every subset of the common axes
         images = [(u, v, m)]
-        for a, s in common:
+        for a, s in (common if surface.periodic else ()):
             for iu, iv, im in list(images):
                 if iu not in partner[a] or iv not in partner[a]:
                     raise MeshingError("volume", f"box edge ({iu}, {iv}) on {'xyz'[a]}={'0L'[s]} has no periodic "
@@ -317,7 +317,7 @@ def split_edges(surface: SurfaceMesh, edges: np.ndarray, project_fn: Callable | 
             tris = np.concatenate([tris, second])
             sides = np.concatenate([sides, sides[hold]])
             kind = np.concatenate([kind, kind[hold]])
-        for a, s in common:  # pair the new nodes across axis a
+        for a, s in (common if surface.periodic else ()):  # pair the new nodes across axis a
             for iu, iv, im in images:
                 ju, jv = partner[a].get(iu), partner[a].get(iv)
                 if ju is None or jv is None or im[a] != 0.0:
@@ -332,5 +332,6 @@ def split_edges(surface: SurfaceMesh, edges: np.ndarray, project_fn: Callable | 
         extra = np.asarray(new_pairs[a], dtype=np.int64).reshape(-1, 2)
         if len(old) or len(extra) or a in surface.periodic_pairs:
             pairs[a] = np.concatenate([old, extra])
-    out = SurfaceMesh(np.asarray(pts), tris, sides, kind, np.asarray(inc), surface.box, pairs, dict(surface.metadata))
+    out = SurfaceMesh(np.asarray(pts), tris, sides, kind, np.asarray(inc), surface.box, pairs, dict(surface.metadata),
+                      surface.periodic)
     return out, added

@@ -183,7 +183,7 @@ def remove_slivers(points: np.ndarray, cells: np.ndarray, surface: SurfaceMesh,
     slide = None
     if phi_fn is not None and config.slide_surface:
         slide = SurfaceSlide(points, surface.triangles, surface.node_inclusion, surface.box, phi_fn,
-                             surface.periodic_pairs)
+                             surface.periodic_pairs, surface.periodic)
     first = points[: surface.n_points].copy()
     for rnd in range(config.sliver_passes + 1):
         # the surface nodes slide in the global pass only; the Steiner clean-ups stay local

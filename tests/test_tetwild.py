@@ -65,9 +65,9 @@ def test_backend_is_validated():
         mesh_rve(ms2, MeshConfig(backend="tetwild"))
 
 
-def test_non_periodic_field_meshes_with_tetwild_only(tmp_path):
-    """A field that is not periodic (a sphere cut by x = 0 whose other half is not at x = 1): the
-    conforming mesher refuses it with a pointer to tetwild, which meshes it without a wrapped copy."""
+def test_non_periodic_field_meshes_with_tetwild(tmp_path):
+    """A field that is not periodic (a sphere cut by x = 0 whose other half is not at x = 1): tetwild
+    meshes it without a wrapped copy (the conforming mesher's non-periodic path: tests/test_nonperiodic.py)."""
     n = 24
     x = np.arange(n) / n
     X = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1)
@@ -75,8 +75,6 @@ def test_non_periodic_field_meshes_with_tetwild_only(tmp_path):
     with pytest.raises(ValueError, match="periodic"):
         Microstructure.from_levelset(phi)
     ms = Microstructure.from_levelset(phi, periodic=False)
-    with pytest.raises(ValueError, match="tetwild"):
-        mesh_rve(ms, MeshConfig(periodic=False))
     v, _ = levelset_surface(np.asarray(ms.dn1), ms.box, periodic=False)
     assert v[:, 0].max() < 0.4  # no copy of the cap near x = 1
     mesh = mesh_rve(ms, MeshConfig(backend="tetwild", h=0.1, periodic=False))

@@ -540,10 +540,10 @@ class Microstructure:
         for c, (win, W, own, desc, stat) in enumerate(zip(windows, fields, owns, descriptions, stats), 1):
             lo, hi = comp.crossing_bounds(W, own, win.full)
             lower, upper = (win.origin + lo) * spacing, (win.origin + hi) * spacing
-            if not periodic:  # cut by the domain boundary: the bounds reach it (replicated beyond)
+            if not periodic:  # cut by the domain boundary: the bounds reach the box (replicated beyond
+                # the last node, which sits a step before x = L)
                 lower = np.where(starts[c - 1] == 0, 0.0, lower)
-                last = (np.asarray(shape) - 1) * spacing
-                upper = np.where(starts[c - 1] + lengths[c - 1] == shape, last, upper)
+                upper = np.where(starts[c - 1] + lengths[c - 1] == shape, np.asarray(box, float), upper)
             centre, half = zip(*(comp.core_geometry(win, k, spacing, W.shape) for k in range(len(shape))))
             data = _pad_to_bucket(bspline_coefficients(W) if order == "cubic" else jnp.asarray(W))
             args = [jnp.asarray(a, dtype=data.dtype) for a in
