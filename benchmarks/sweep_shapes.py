@@ -3,8 +3,9 @@
 Builds each input in OUT_DIR (tori, rounded cubes, finite cylinders, a labelled image, a
 non-cubic box, a sphere near its images, spheres on a box corner / edge, Gaussian excursion
 sets from `jaxmesh generate --kind grf`), runs `jaxmesh mesh`
-on it and prints one line per case.
-    .venv/bin/python benchmarks/sweep_shapes.py [OUT_DIR] [--only NAME ...] [--build-only]
+on it and prints one line per case. With --no-periodic the same fields are meshed as plain boxes
+(`jaxmesh mesh --no-periodic`: the box cuts the inclusions, each piece one inclusion).
+    .venv/bin/python benchmarks/sweep_shapes.py [OUT_DIR] [--only NAME ...] [--build-only] [--no-periodic]
 """
 
 from __future__ import annotations
@@ -226,7 +227,7 @@ def _last_line(text: str) -> str:
     return lines[-1].strip() if lines else "(no stderr)"
 
 
-def run_case(name: str, out: Path, build_only: bool) -> str:
+def run_case(name: str, out: Path, build_only: bool, periodic: bool = True) -> str:
     try:
         path, extra, note = CASES[name](out)
     except Exception as err:  # noqa: BLE001 - a sweep reports and goes on
@@ -237,6 +238,8 @@ def run_case(name: str, out: Path, build_only: bool) -> str:
     for f in (vtu, rep):
         f.unlink(missing_ok=True)
     cmd = [str(JAXMESH), "mesh", str(path), "-o", str(vtu), "--report", str(rep), *extra]
+    if not periodic:
+        cmd.append("--no-periodic")
     start = time.perf_counter()
     try:
         res = subprocess.run(cmd, capture_output=True, text=True, timeout=TIMEOUT)
@@ -261,6 +264,7 @@ def main() -> None:
     parser.add_argument("out_dir", nargs="?", default="/tmp/jaxmesh_shapes")
     parser.add_argument("--only", nargs="+", choices=sorted(CASES), help="run these cases only")
     parser.add_argument("--build-only", action="store_true", help="write the inputs, mesh nothing")
+    parser.add_argument("--no-periodic", action="store_true", help="mesh the fields as plain (non-periodic) boxes")
     args = parser.parse_args()
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -269,9 +273,9 @@ def main() -> None:
     dirty = subprocess.run([*git, "diff", "--quiet", "HEAD", "--", "jaxmesh"]).returncode != 0
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M:%S")
     print(f"# {now} UTC, {len(os.sched_getaffinity(0))} cores, commit {commit}{'+modified' if dirty else ''}, "
-          f"out {out}", flush=True)
+          f"out {out}{', --no-periodic' if args.no_periodic else ''}", flush=True)
     for name in args.only or CASES:
-        print(run_case(name, out, args.build_only), flush=True)
+        print(run_case(name, out, args.build_only, not args.no_periodic), flush=True)
 
 
 if __name__ == "__main__":

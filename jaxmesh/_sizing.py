@@ -530,10 +530,16 @@ def _curvature(phi_fn: Callable, points: np.ndarray) -> np.ndarray:
         return np.asarray(max_abs_curvature(phi_fn, padded))[:m]
 
 
-def _grid_normals(dn1: np.ndarray, box, points) -> np.ndarray:
-    """Unit normals at (s, d) points from periodic central differences of dn1 (linear interpolation)."""
+def _grid_normals(dn1: np.ndarray, box, points, periodic: bool = True) -> np.ndarray:
+    """Unit normals at (s, d) points from central differences of dn1 (linear interpolation);
+    not periodic: one-sided differences on the border slices and the points clamped to the last
+    node (a periodic difference there would take the far side's values)."""
     spacing = np.asarray(box) / np.asarray(dn1.shape)
-    grad = [(np.roll(dn1, -1, a) - np.roll(dn1, 1, a)) / (2.0 * spacing[a]) for a in range(dn1.ndim)]
+    if periodic:
+        grad = [(np.roll(dn1, -1, a) - np.roll(dn1, 1, a)) / (2.0 * spacing[a]) for a in range(dn1.ndim)]
+    else:
+        grad = np.gradient(dn1, *spacing)
+        points = jnp.clip(jnp.asarray(points), 0.0, jnp.asarray((np.asarray(dn1.shape) - 1) * spacing))
     g = np.stack([np.asarray(interpolate_linear(jnp.asarray(c), box, points)) for c in grad], axis=-1)
     return g / np.maximum(np.linalg.norm(g, axis=-1, keepdims=True), 1e-300)
 
@@ -613,7 +619,7 @@ def size_sources(microstructure) -> SizeSources:
     # first-order distance), not resolved geometry: without a cap they set h down to its floor
     kappa = np.minimum(kappa, _MAX_CURVATURE_STEPS / step)
     dn1_grid = np.asarray(ms.dn1, dtype=float)
-    normals = _grid_normals(dn1_grid, ms.box, points)
+    normals = _grid_normals(dn1_grid, ms.box, points, ms.periodic)
     own_gap = self_gaps(pts, ids, normals, dn1_grid, np.asarray(ms.nearest_id), ms.box, ms.periodic)
     dn2 = jnp.minimum(interpolate_linear(jnp.asarray(dn2_grid), ms.box, points), jnp.asarray(own_gap))
     box_gap = box_gaps(pts, normals, ms.box)

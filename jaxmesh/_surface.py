@@ -561,7 +561,8 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
     if not periodic:
         cap = 2.0 * step
         phi_fn = BoxCapped(phi_fn, tuple(float(v) for v in L), jnp.asarray(cap))
-        # a grid inclusion's bounds stop at the last grid node, its surface continues beyond it
+        # the surface of an inclusion the box cuts goes on beyond it (a grid one as an extrusion of
+        # the border samples) up to the cap: the window reaches the cap
         lower = np.where(lower < cap, -cap, lower)
         upper = np.where(upper > L - cap, L + cap, upper)
         if (upper <= lower).any():

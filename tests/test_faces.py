@@ -111,7 +111,7 @@ def test_quality(rve):
 
 def test_bad_input():
     ms = Microstructure.from_functions([sphere_sdf(np.array([0.5, 0.5]), 0.2)], (1.0, 1.0), (16, 16))
-    with pytest.raises(ValueError, match="periodic 3D"):
+    with pytest.raises(ValueError, match="expected a 3D microstructure"):
         mesh_surfaces(ms, 0.05)
     with pytest.raises(ValueError, match="Microstructure"):
         mesh_surfaces(object(), 0.05)

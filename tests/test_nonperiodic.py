@@ -1,5 +1,6 @@
-"""Non-periodic 3D meshes (`MeshConfig(periodic=False)`, `jaxmesh mesh --no-periodic`): inclusions cut
-by the box are clipped, not wrapped; each face is meshed on its own; the validator passes."""
+"""Non-periodic meshes (`MeshConfig(periodic=False)`, `jaxmesh mesh --no-periodic`): inclusions cut
+by the box are clipped, not wrapped; each face is meshed on its own; the validator passes. The 2D
+mesher's own non-periodic tests are in tests/test_mesh2d.py."""
 
 import json
 
@@ -111,3 +112,17 @@ def test_cli_no_periodic(tmp_path, capsys):
     assert main(["mesh", str(path), "-o", str(tmp_path / "p.vtu"), "--iis", "0.12"]) == 2  # refused as periodic
     assert "periodic=False" in capsys.readouterr().err
     assert not (tmp_path / "p.vtu").exists()
+
+
+def test_cli_no_periodic_2d(tmp_path):
+    n = 64
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(x, x, indexing="ij"), -1)
+    phi = np.minimum(np.linalg.norm(X - [0.05, 0.5], axis=-1) - 0.2, np.linalg.norm(X - [0.6, 0.97], axis=-1) - 0.15)
+    path, out = tmp_path / "phi2d.npy", tmp_path / "plain2d.vtu"
+    np.save(path, phi)
+    assert main(["mesh", str(path), "-o", str(out), "--h", "0.04", "--no-periodic"]) == 0
+    mesh = meshio.read(out)
+    p = mesh.points[np.unique(mesh.cells_dict["triangle"][mesh.cell_data_dict["inclusion_id"]["triangle"] == 1])]
+    assert p[:, 0].max() < 0.3  # the disc cut by x = 0 has no copy at x = 1
+    assert main(["validate", str(out), "--geometry", str(path), "--no-periodic"]) == 0
