@@ -595,6 +595,11 @@ def assemble_pslg(arcs: list[Arc], crossings: list[Crossing], box, h_fn: Callabl
             seg_partner.extend([s0 + 2 * i + 1, s0 + 2 * i])
 
     _append_arcs(arcs, node_of, add, seg, seg_inc, seg_partner)
+    return _collected_pslg(pts, seg, seg_inc, seg_partner, kind, axis, ninc, {a: pairs[a] for a in (0, 1)}, L, True)
+
+
+def _collected_pslg(pts, seg, seg_inc, seg_partner, kind, axis, ninc, pairs: dict, L, periodic: bool) -> PSLG:
+    """The PSLG of the lists an assembly collected."""
     return PSLG(
         points=np.asarray(pts, dtype=float),
         segments=np.asarray(seg, dtype=np.int64).reshape(-1, 2),
@@ -603,8 +608,9 @@ def assemble_pslg(arcs: list[Arc], crossings: list[Crossing], box, h_fn: Callabl
         node_kind=np.asarray(kind, dtype=np.int8),
         node_axis=np.asarray(axis, dtype=np.int8),
         node_inclusion=np.asarray(ninc, dtype=np.int64),
-        periodic_pairs={a: np.asarray(pairs[a], dtype=np.int64) for a in (0, 1)},
+        periodic_pairs={a: np.asarray(p, dtype=np.int64) for a, p in pairs.items()},
         box=(float(L[0]), float(L[1])),
+        periodic=periodic,
     )
 
 
@@ -673,18 +679,7 @@ def assemble_box_pslg(arcs: list[Arc], crossings: list[Crossing], box, h_fn: Cal
         seg_inc.extend([BOX_SEGMENT] * (len(chain) - 1))
         seg_partner.extend([-1] * (len(chain) - 1))
     _append_arcs(arcs, node_of, add, seg, seg_inc, seg_partner)
-    return PSLG(
-        points=np.asarray(pts, dtype=float),
-        segments=np.asarray(seg, dtype=np.int64).reshape(-1, 2),
-        segment_inclusion=np.asarray(seg_inc, dtype=np.int64),
-        segment_partner=np.asarray(seg_partner, dtype=np.int64),
-        node_kind=np.asarray(kind, dtype=np.int8),
-        node_axis=np.asarray(axis, dtype=np.int8),
-        node_inclusion=np.asarray(ninc, dtype=np.int64),
-        periodic_pairs={},
-        box=(float(L[0]), float(L[1])),
-        periodic=False,
-    )
+    return _collected_pslg(pts, seg, seg_inc, seg_partner, kind, axis, ninc, {}, L, False)
 
 
 def rebuild_box_segments(pslg: PSLG) -> PSLG:
