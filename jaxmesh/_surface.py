@@ -211,12 +211,12 @@ def check_clear_of_images(inclusions, box) -> None:
                                "mesher needs every inclusion clear of its images", inc.id)
 
 
-def extract(phi_fn, lower, upper, step: float, box, periodic: bool = True):
+def extract(phi_fn, lower, upper, step: float, box, periodic: bool = True, reach: float | None = None):
     """Marching cubes of one inclusion on a window around its (unwrapped) bounds.
 
     Periodic: the window stays within half a box of the inclusion centre: beyond it the periodic
     level set shows the next periodic image, which would leave an open piece of surface on the
-    window edge. Not periodic: the window is the bounds plus 2.5 steps (no images).
+    window edge. Not periodic: the window is the bounds plus 2.5 * max(step, reach) (no images).
     Per axis, the sample spacing is at most `step` and at most the margin around the bounds.
 
     Returns:
@@ -224,7 +224,10 @@ def extract(phi_fn, lower, upper, step: float, box, periodic: bool = True):
     """
     lower, upper, L = (np.asarray(v, float) for v in (lower, upper, box))
     centre, half = (lower + upper) / 2, (upper - lower) / 2
-    margin = np.minimum(2.5 * step, 0.5 * L - half - 1e-6 * L) if periodic else np.full(3, 2.5 * step)
+    if periodic:
+        margin = np.minimum(2.5 * step, 0.5 * L - half - 1e-6 * L)
+    else:
+        margin = np.full(3, 2.5 * max(step, reach or 0.0))
     if (margin < 0.05 * step).any():
         raise MeshingError("surfaces", f"the inclusion spans {np.max(2 * half / L):.0%} of the box along an axis; "
                            "an inclusion must fit in half the box around its centre (with a margin)")
@@ -568,7 +571,9 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
         if (upper <= lower).any():
             raise MeshingError("surfaces", "the inclusion lies outside the box", inclusion.id)
     for _ in range(_MC_ATTEMPTS):
-        raw, tris = extract(phi_fn, lower, upper, step, box, periodic)
+        # not periodic: a piece the box cuts thin (a small step) may still overhang its bounds by a
+        # fraction of a grid step where its interpolant continues beyond the domain
+        raw, tris = extract(phi_fn, lower, upper, step, box, periodic, reach=config.mc_step * h0)
         if len(tris) < 4:
             raise MeshingError("surfaces", "marching cubes found no closed surface", inclusion.id)
         edge_use = np.bincount(half_edges(tris, len(raw))[1].reshape(-1))

@@ -126,3 +126,23 @@ def test_cli_no_periodic_2d(tmp_path):
     p = mesh.points[np.unique(mesh.cells_dict["triangle"][mesh.cell_data_dict["inclusion_id"]["triangle"] == 1])]
     assert p[:, 0].max() < 0.3  # the disc cut by x = 0 has no copy at x = 1
     assert main(["validate", str(out), "--geometry", str(path), "--no-periodic"]) == 0
+
+
+def test_a_piece_the_box_cuts_thinner_than_a_grid_step():
+    """A ball mostly beyond z = 0 leaves a cap 0.6 grid steps thick in the box: its marching cubes
+    samples at a quarter of that, and the window must still hold the interpolant's overhang."""
+    from jaxmesh._surface import as_size_fn, mesh_inclusion
+
+    n = 48
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), -1)
+    ms = Microstructure.from_levelset(np.linalg.norm(X - [0.5, 0.5, -0.288], axis=-1) - 0.3, periodic=False)
+    inc = ms.inclusions[0]
+    assert inc.upper[2] - inc.lower[2] < 1 / n
+    out = mesh_inclusion(inc, as_size_fn(0.05, ms.box, periodic=False), ms.box, periodic=False)
+    p, t = out["points"], out["triangles"]
+    assert len(t) > 100 and p.min() >= 0.0 and p.max() <= 1.0
+    edges = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    uniq, count = np.unique(edges, axis=0, return_counts=True)
+    rim = uniq[count == 1]  # the cap is open only along its trace on z = 0
+    assert len(rim) > 10 and (p[rim, 2] == 0.0).all() and (count <= 2).all()

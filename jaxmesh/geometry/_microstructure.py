@@ -480,9 +480,10 @@ class Microstructure:
             uniq, counts = np.unique(values, return_counts=True)
             if (counts > 1).any():
                 split = ", ".join(f"label {u} has {c} parts" for u, c in zip(uniq, counts) if c > 1)
+                where = "across periodic faces" if periodic else "inside the box: the box cuts it otherwise"
                 raise ValueError(
-                    f"from_labels expected each label to be one connected region (face-connected, across "
-                    f"periodic faces), got {split}. Hint: relabel, e.g. scipy.ndimage.label(labels > 0)."
+                    f"from_labels expected each label to be one connected region (face-connected, {where}), "
+                    f"got {split}. Hint: relabel, e.g. scipy.ndimage.label(labels > 0)."
                 )
             order = np.argsort(values)  # ids 1..N by increasing label
             relabel = np.zeros(n + 1, np.int32)
