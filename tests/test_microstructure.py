@@ -454,7 +454,7 @@ def test_bad_labels():
     lab[0:3, 5:9] = 4
     lab[14:16, 5:9] = 4  # one inclusion through the periodic face: fine
     assert len(Microstructure.from_labels(lab).inclusions) == 1
-    _raises("periodic faces", Microstructure.from_labels, lab, periodic=False)
+    _raises("inside the box", Microstructure.from_labels, lab, periodic=False)
     _raises("only zeros", Microstructure.from_labels, np.zeros((8, 8), int))
     _raises(">= 0", Microstructure.from_labels, -lab)
     _raises("integer or bool", Microstructure.from_labels, lab.astype(float))
