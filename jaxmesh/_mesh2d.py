@@ -62,6 +62,7 @@ from ._contours import (
     window_grid,
 )
 from ._errors import MeshingError
+from ._surface import as_size_fn
 from ._triangulate2d import (
     component_labels,
     distance_to_segments,
@@ -253,18 +254,10 @@ def _resolve_size(ms, h, size_kwargs) -> _Size:
         values = np.asarray(h.values, dtype=float)
         if values.ndim != 2 or not np.all(np.isfinite(values)) or values.min() <= 0:
             raise ValueError(f"expected a 2D size field with positive finite values, got shape {values.shape}")
-        fn = h.h_fn()
-        if not ms.periodic:
-            fn = _clamped_to_grid(fn, ms)
+        # not periodic: clamped at the last grid node, where the grid interpolation blends the far side in
+        fn = h.h_fn() if ms.periodic else as_size_fn(h, ms.box, periodic=False)
         return _Size(lambda p: np.asarray(fn(jnp.asarray(p, dtype=float))), fn, float(values.min()), h, "field")
     raise ValueError(f"expected h None, a float or a SizeField, got {type(h).__name__}; hint: e.g. h=0.02")
-
-
-def _clamped_to_grid(fn, ms):
-    """A non-periodic grid field seen as the level sets are: beyond the last node (x > (n - 1) L / n)
-    the edge value, not the periodic blend towards x = 0 that the grid interpolation makes."""
-    last = jnp.asarray([(n - 1) * L / n for n, L in zip(ms.grid_shape, ms.box)])
-    return lambda p: fn(jnp.clip(p, 0.0, last))
 
 
 # ----------------------------------------------------------------------------- stages 1-2

@@ -146,3 +146,25 @@ def test_a_piece_the_box_cuts_thinner_than_a_grid_step():
     uniq, count = np.unique(edges, axis=0, return_counts=True)
     rim = uniq[count == 1]  # the cap is open only along its trace on z = 0
     assert len(rim) > 10 and (p[rim, 2] == 0.0).all() and (count <= 2).all()
+
+
+@pytest.mark.parametrize("order", ["cubic", "linear"])
+def test_grid_levelset_is_extruded_beyond_the_last_sample(order):
+    """Samples stop a step before x = L. Beyond the last one the field is the border samples extruded:
+    a B-spline through replicated border nodes overshot there, and where phi was close to zero at the
+    last sample (a flat face just above it) it made a nearly flat, spurious zero set (seen on rounded
+    boxes: the volume recovery then diverged)."""
+    n = 24
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), -1)
+    top = (n - 1) / n + 0.1 / n  # just above the last sample: phi there is -0.1 step
+    phi = np.maximum(np.abs(X[..., :2] - 0.5).max(-1) - 0.2, X[..., 2] - top)  # a slab reaching past z = L
+    phi = np.maximum(phi, 0.3 - X[..., 2])
+    ms = Microstructure.from_levelset(phi, periodic=False, order=order)
+    assert len(ms.inclusions) == 1 and ms.inclusions[0].upper[2] == 1.0
+    z = np.linspace((n - 1) / n, 1.0, 41)
+    col = np.stack([np.full_like(z, 0.5), np.full_like(z, 0.5), z], 1)
+    values = ms.phi(col)
+    assert np.allclose(values, values[0], atol=1e-12, rtol=0) and abs(values[0] + 0.1 / n) < 1e-9
+    inner = ms.phi(np.array([[0.5, 0.5, (n - 1.5) / n]]))[0]  # between samples: the ramp, not clamped
+    assert abs(inner + 0.6 / n) < 0.1 / n

@@ -53,8 +53,15 @@ def _pad_to_bucket(data):
 
 def _window_phi(data, origin, center, half, box, window_box, points, *, cubic, periodic):
     """Level set of one window: the B-spline (or multilinear) interpolant inside the core, and
-    outside it the value at the point clamped onto the core plus the distance to the core."""
+    outside it the value at the point clamped onto the core plus the distance to the core. Not
+    periodic: points are first clamped to the sampled range [0, L - step] (an extrusion beyond it)."""
     points = jnp.asarray(points)
+    if not periodic:
+        # beyond the first and last samples (the last one sits a step before x = L) the border
+        # samples go on unchanged: a B-spline through the replicated nodes would overshoot there and
+        # make a spurious, nearly flat zero set where phi is close to zero at the border
+        last = box - window_box / jnp.asarray(data.shape, dtype=window_box.dtype)
+        points = jnp.clip(points, 0.0, last)
     u = points - center
     if periodic:
         u = minimum_image(u, box)
