@@ -547,20 +547,12 @@ def assemble_pslg(arcs: list[Arc], crossings: list[Crossing], box, h_fn: Callabl
         :class:`PSLG` with periodic pairs for both axes (corners included).
     """
     L = np.asarray(box, dtype=float)
-    pts = [np.array([0.0, 0.0]), np.array([L[0], 0.0]), np.array([0.0, L[1]]), np.array([L[0], L[1]])]
+    g = _PslgLists(L)
+    add, seg, seg_inc, seg_partner = g.add, g.seg, g.seg_inc, g.seg_partner
     BL, BR, TL, TR = 0, 1, 2, 3
-    kind, axis, ninc = [FIXED] * 4, [-1] * 4, [0] * 4
-    seg, seg_inc, seg_partner = [], [], []
     pairs = {0: [(BL, BR), (TL, TR)], 1: [(BL, TL), (BR, TR)]}
     corner_chain = {0: ((BL, TL), (BR, TR)), 1: ((BL, BR), (TL, TR))}
     node_of = {}  # (crossing index, side) -> node id
-
-    def add(p, k, a, i):
-        pts.append(np.asarray(p, dtype=float))
-        kind.append(k)
-        axis.append(a)
-        ninc.append(i)
-        return len(pts) - 1
 
     for a in (0, 1):
         b = 1 - a
@@ -595,23 +587,39 @@ def assemble_pslg(arcs: list[Arc], crossings: list[Crossing], box, h_fn: Callabl
             seg_partner.extend([s0 + 2 * i + 1, s0 + 2 * i])
 
     _append_arcs(arcs, node_of, add, seg, seg_inc, seg_partner)
-    return _collected_pslg(pts, seg, seg_inc, seg_partner, kind, axis, ninc, {a: pairs[a] for a in (0, 1)}, L, True)
+    return g.pslg(pairs, periodic=True)
 
 
-def _collected_pslg(pts, seg, seg_inc, seg_partner, kind, axis, ninc, pairs: dict, L, periodic: bool) -> PSLG:
-    """The PSLG of the lists an assembly collected."""
-    return PSLG(
-        points=np.asarray(pts, dtype=float),
-        segments=np.asarray(seg, dtype=np.int64).reshape(-1, 2),
-        segment_inclusion=np.asarray(seg_inc, dtype=np.int64),
-        segment_partner=np.asarray(seg_partner, dtype=np.int64),
-        node_kind=np.asarray(kind, dtype=np.int8),
-        node_axis=np.asarray(axis, dtype=np.int8),
-        node_inclusion=np.asarray(ninc, dtype=np.int64),
-        periodic_pairs={a: np.asarray(p, dtype=np.int64) for a, p in pairs.items()},
-        box=(float(L[0]), float(L[1])),
-        periodic=periodic,
-    )
+class _PslgLists:
+    """The lists a PSLG assembly collects, starting from the four box corners (BL, BR, TL, TR)."""
+
+    def __init__(self, L: np.ndarray):
+        self.L = L
+        self.pts = [np.array([0.0, 0.0]), np.array([L[0], 0.0]), np.array([0.0, L[1]]), np.array([L[0], L[1]])]
+        self.kind, self.axis, self.ninc = [FIXED] * 4, [-1] * 4, [0] * 4
+        self.seg, self.seg_inc, self.seg_partner = [], [], []
+
+    def add(self, p, k, a, i) -> int:
+        """A node at p of kind k on box axis a (-1: none) on inclusion i; returns its id."""
+        self.pts.append(np.asarray(p, dtype=float))
+        self.kind.append(k)
+        self.axis.append(a)
+        self.ninc.append(i)
+        return len(self.pts) - 1
+
+    def pslg(self, pairs: dict, periodic: bool) -> PSLG:
+        return PSLG(
+            points=np.asarray(self.pts, dtype=float),
+            segments=np.asarray(self.seg, dtype=np.int64).reshape(-1, 2),
+            segment_inclusion=np.asarray(self.seg_inc, dtype=np.int64),
+            segment_partner=np.asarray(self.seg_partner, dtype=np.int64),
+            node_kind=np.asarray(self.kind, dtype=np.int8),
+            node_axis=np.asarray(self.axis, dtype=np.int8),
+            node_inclusion=np.asarray(self.ninc, dtype=np.int64),
+            periodic_pairs={a: np.asarray(p, dtype=np.int64) for a, p in pairs.items()},
+            box=(float(self.L[0]), float(self.L[1])),
+            periodic=periodic,
+        )
 
 
 def _append_arcs(arcs: list[Arc], node_of: dict, add: Callable, seg: list, seg_inc: list, seg_partner: list):
@@ -645,18 +653,10 @@ def assemble_box_pslg(arcs: list[Arc], crossings: list[Crossing], box, h_fn: Cal
         :class:`PSLG` with ``periodic=False``, no periodic pairs and no segment partners.
     """
     L = np.asarray(box, dtype=float)
-    pts = [np.array([0.0, 0.0]), np.array([L[0], 0.0]), np.array([0.0, L[1]]), np.array([L[0], L[1]])]
-    kind, axis, ninc = [FIXED] * 4, [-1] * 4, [0] * 4
-    seg, seg_inc, seg_partner = [], [], []
+    g = _PslgLists(L)
+    add, seg, seg_inc, seg_partner = g.add, g.seg, g.seg_inc, g.seg_partner
     side_of = {end[0]: end[1] for arc in arcs if not arc.closed for end in (arc.start, arc.end)}
     node_of = {}  # (crossing index, side) -> node id
-
-    def add(p, k, a, i):
-        pts.append(np.asarray(p, dtype=float))
-        kind.append(k)
-        axis.append(a)
-        ninc.append(i)
-        return len(pts) - 1
 
     for (a, side), (lo, hi) in _SIDES.items():
         b = 1 - a
@@ -679,7 +679,7 @@ def assemble_box_pslg(arcs: list[Arc], crossings: list[Crossing], box, h_fn: Cal
         seg_inc.extend([BOX_SEGMENT] * (len(chain) - 1))
         seg_partner.extend([-1] * (len(chain) - 1))
     _append_arcs(arcs, node_of, add, seg, seg_inc, seg_partner)
-    return _collected_pslg(pts, seg, seg_inc, seg_partner, kind, axis, ninc, {}, L, False)
+    return g.pslg({}, periodic=False)
 
 
 def rebuild_box_segments(pslg: PSLG) -> PSLG:
