@@ -454,7 +454,9 @@ def test_bad_labels():
     lab[0:3, 5:9] = 4
     lab[14:16, 5:9] = 4  # one inclusion through the periodic face: fine
     assert len(Microstructure.from_labels(lab).inclusions) == 1
-    _raises("inside the box", Microstructure.from_labels, lab, periodic=False)
+    plain = Microstructure.from_labels(lab, periodic=False)  # the box cuts label 4: one inclusion per part
+    assert [(i.description["label"], i.description["part"]) for i in plain.inclusions] == [(4, 1), (4, 2)]
+    assert plain.label(np.array([[1.0 / 16, 7.0 / 16], [15.0 / 16, 7.0 / 16]])).tolist() == [1, 2]
     _raises("only zeros", Microstructure.from_labels, np.zeros((8, 8), int))
     _raises(">= 0", Microstructure.from_labels, -lab)
     _raises("integer or bool", Microstructure.from_labels, lab.astype(float))

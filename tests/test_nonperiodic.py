@@ -168,3 +168,22 @@ def test_grid_levelset_is_extruded_beyond_the_last_sample(order):
     assert np.allclose(values, values[0], atol=1e-12, rtol=0) and abs(values[0] + 0.1 / n) < 1e-9
     inner = ms.phi(np.array([[0.5, 0.5, (n - 1.5) / n]]))[0]  # between samples: the ramp, not clamped
     assert abs(inner + 0.6 / n) < 0.1 / n
+
+
+def test_labels_the_box_splits_mesh_one_inclusion_per_part():
+    """A periodic label image read as a plain box: the box cuts label 1 into two parts (x near 0 and
+    x near 1) and label 2 into four (an edge); each part is meshed as its own inclusion."""
+    n = 32
+    x = (np.arange(n) + 0.5) / n
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), -1)
+    lab = np.zeros((n, n, n), np.int64)
+    for k, (c, r) in enumerate([((0.0, 0.5, 0.5), 0.2), ((0.0, 0.0, 0.5), 0.22), ((0.55, 0.55, 0.25), 0.15)], 1):
+        d = X - np.asarray(c)
+        lab[np.linalg.norm(d - np.round(d), axis=-1) < r] = k  # periodic images
+    assert len(Microstructure.from_labels(lab).inclusions) == 3  # periodic: each label one region
+    ms = Microstructure.from_labels(lab, periodic=False)
+    assert [(i.description["label"], i.description.get("part")) for i in ms.inclusions] == [
+        (1, 1), (1, 2), (2, 1), (2, 2), (2, 3), (2, 4), (3, 1)]
+    mesh = mesh_rve(ms, MeshConfig(iis=0.1, periodic=False))
+    _check_plain_box(mesh, ms)
+    assert quality_report(mesh)["n_inclusions"] == 7

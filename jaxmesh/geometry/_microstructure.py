@@ -452,8 +452,10 @@ class Microstructure:
     def from_labels(cls, labels, box=None, periodic=True, *, reach=None) -> Microstructure:
         """Inclusions from a labelled image: 0 matrix, k > 0 inclusion (bool: each component one).
 
-        Each label must be one connected region (merged across periodic faces); labels are
-        renumbered 1..N in increasing order (the original is kept in description["label"]). The
+        Periodic: each label must be one connected region (merged across periodic faces). Not
+        periodic: a label in several parts (one the box cuts, as a crop does) gives one inclusion per
+        part (description["part"] 1, 2, ...). Inclusions are numbered 1..N by increasing label (the
+        original is kept in description["label"]). The
         level set of each is the signed distance to its voxels with the interface half a step
         from the nodes, lightly smoothed.
 
@@ -485,14 +487,14 @@ class Microstructure:
             first[comps.ravel()] = lab.ravel()
             values = first[1:]
             uniq, counts = np.unique(values, return_counts=True)
-            if (counts > 1).any():
+            if periodic and (counts > 1).any():
                 split = ", ".join(f"label {u} has {c} parts" for u, c in zip(uniq, counts) if c > 1)
-                where = "across periodic faces" if periodic else "inside the box: the box cuts it otherwise"
                 raise ValueError(
-                    f"from_labels expected each label to be one connected region (face-connected, {where}), "
-                    f"got {split}. Hint: relabel, e.g. scipy.ndimage.label(labels > 0)."
+                    "from_labels expected each label to be one connected region (face-connected, across "
+                    f"periodic faces), got {split}. Hint: relabel, e.g. scipy.ndimage.label(labels > 0)."
                 )
-            order = np.argsort(values)  # ids 1..N by increasing label
+            # not periodic, a label in several parts (the box cuts it, as a crop does): one inclusion per part
+            order = np.argsort(values, kind="stable")  # ids 1..N by increasing label, parts in scan order
             relabel = np.zeros(n + 1, np.int32)
             relabel[order + 1] = np.arange(1, n + 1)
             comps, values = relabel[comps], values[order]
@@ -506,6 +508,9 @@ class Microstructure:
             fields.append(comp.labels_window_field(own, spacing, win.full))
             windows.append(win)
         descriptions = [{"kind": "labels", "label": int(val)} for val in values]
+        if len(np.unique(values)) < len(values):
+            for k, val in enumerate(values):
+                descriptions[k]["part"] = int((values[:k] == val).sum()) + 1
         return cls._from_windows(box, periodic, "cubic", comps, (starts, lengths), windows, fields, r,
                                  descriptions, "from_labels")
 
