@@ -458,6 +458,24 @@ def test_flat_labels():
     assert set(np.unique(mesh.inclusion_id)) == set(range(6))
 
 
+def test_flat_labels_the_box_splits():
+    """A periodic label image read as a plain box: label 1 (cut by x = 0) in two parts, label 2 (on a
+    corner) in four; each part is meshed as its own inclusion."""
+    n = 96
+    x = (np.arange(n) + 0.5) / n
+    X = np.stack(np.meshgrid(x, x, indexing="ij"), -1)
+    lab = np.zeros((n, n), np.int64)
+    for k, (c, r) in enumerate([((0.0, 0.5), 0.2), ((0.0, 0.0), 0.22), ((0.55, 0.55), 0.15)], 1):
+        d = X - np.asarray(c)
+        lab[np.linalg.norm(d - np.round(d), axis=-1) < r] = k  # with its periodic images
+    ms = Microstructure.from_labels(lab, periodic=False)
+    assert [i.description["label"] for i in ms.inclusions] == [1, 1, 2, 2, 2, 2, 3]
+    mesh = mesh_2d(ms, h=0.025)
+    report = validate(mesh, ms)
+    assert report.ok, report.summary()
+    assert not mesh.periodic and set(np.unique(mesh.inclusion_id)) == set(range(8))
+
+
 @pytest.mark.parametrize("interior", ["hex", "quadtree"])
 def test_flat_size_function(interior):
     from jaxmesh._sizing import SizeParams, size_function
