@@ -571,8 +571,8 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
         if (upper <= lower).any():
             raise MeshingError("surfaces", "the inclusion lies outside the box", inclusion.id)
     for _ in range(_MC_ATTEMPTS):
-        # not periodic: a piece the box cuts thin (a small step) may still overhang its bounds by a
-        # fraction of a grid step where its interpolant continues beyond the domain
+        # not periodic: a piece the box cuts thin (a small step) may still overhang its bounds beyond
+        # the box planes, up to the cap (an analytic level set widens there; a grid one is extruded)
         raw, tris = extract(phi_fn, lower, upper, step, box, periodic, reach=config.mc_step * h0)
         if len(tris) < 4:
             raise MeshingError("surfaces", "marching cubes found no closed surface", inclusion.id)
