@@ -279,9 +279,19 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
                                "than the surface resolution was meshed as not crossing it; move it off the plane or "
                                "across it)", inclusion=_missing_inclusion(surface, miss))
     raise MeshingError("volume", f"{int(miss.sum())} surface triangles still missing and "
-                       f"{dinfo['flat_interior']} flat tets after {config.max_recovery_rounds} recovery rounds "
-                       "(hint: improve the surface quality or raise max_recovery_rounds)",
+                       f"{dinfo['flat_interior']} flat tets after {config.max_recovery_rounds} recovery rounds"
+                       f"{_missing_place(surface, miss)} (seen where an interface passes a small fraction of a "
+                       "grid step from a box edge: a matrix layer thinner than the input resolves; hint: move the "
+                       "inclusion off the edge or across it, sample the field finer, or raise max_recovery_rounds)",
                        inclusion=_missing_inclusion(surface, miss))
+
+
+def _missing_place(surface: SurfaceMesh, miss: np.ndarray) -> str:
+    """' near x = (...)': the centroid of the first missing triangle, for the error message."""
+    if not miss.any():
+        return ""
+    centre = surface.points[surface.triangles[np.flatnonzero(miss)[0]]].mean(axis=0)
+    return " near x = (" + ", ".join(f"{v:.4g}" for v in centre) + ")"
 
 
 def _missing_inclusion(surface: SurfaceMesh, miss: np.ndarray) -> int | None:

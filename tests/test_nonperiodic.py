@@ -149,25 +149,47 @@ def test_a_piece_the_box_cuts_thinner_than_a_grid_step():
 
 
 @pytest.mark.parametrize("order", ["cubic", "linear"])
-def test_grid_levelset_is_extruded_beyond_the_last_sample(order):
-    """Samples stop a step before x = L. Beyond the last one the field is the border samples extruded:
-    a B-spline through replicated border nodes overshot there, and where phi was close to zero at the
-    last sample (a flat face just above it) it made a nearly flat, spurious zero set (seen on rounded
-    boxes: the volume recovery then diverged)."""
+def test_grid_levelset_goes_on_linearly_beyond_the_samples(order):
+    """Samples stop a step before x = L. Beyond the border samples the field is their linear
+    continuation: a slab whose flat top lies between the last sample and z = L keeps that top there,
+    to a small fraction of a step, with no overshoot and no crease (replicated border nodes bent the B-spline in the last
+    cell: an overshoot under a flat top, a right-angle crease where a surface crosses a plane)."""
     n = 24
     x = np.arange(n) / n
     X = np.stack(np.meshgrid(x, x, x, indexing="ij"), -1)
-    top = (n - 1) / n + 0.1 / n  # just above the last sample: phi there is -0.1 step
-    phi = np.maximum(np.abs(X[..., :2] - 0.5).max(-1) - 0.2, X[..., 2] - top)  # a slab reaching past z = L
+    top = (n - 1) / n + 0.4 / n  # between the last sample and z = L
+    phi = np.maximum(np.abs(X[..., :2] - 0.5).max(-1) - 0.2, X[..., 2] - top)
     phi = np.maximum(phi, 0.3 - X[..., 2])
     ms = Microstructure.from_levelset(phi, periodic=False, order=order)
     assert len(ms.inclusions) == 1 and ms.inclusions[0].upper[2] == 1.0
-    z = np.linspace((n - 1) / n, 1.0, 41)
+    z = np.linspace((n - 2) / n, 1.0 + 1.0 / n, 61)
     col = np.stack([np.full_like(z, 0.5), np.full_like(z, 0.5), z], 1)
-    values = ms.phi(col)
-    assert np.allclose(values, values[0], atol=1e-12, rtol=0) and abs(values[0] + 0.1 / n) < 1e-9
-    inner = ms.phi(np.array([[0.5, 0.5, (n - 1.5) / n]]))[0]  # between samples: the ramp, not clamped
-    assert abs(inner + 0.6 / n) < 0.1 / n
+    assert np.allclose(ms.phi(col), z - top, atol=0.05 / n, rtol=0)  # replicated nodes: 2 steps off
+    # a plane crossing z = 0 at 45 degrees: its level set stays straight through the first cell
+    tilted = (X[..., 0] - X[..., 2] - 0.5) / np.sqrt(2.0)
+    tilted = np.maximum(tilted, np.abs(X[..., 1] - 0.5) - 0.2)
+    tilted = np.maximum(tilted, 0.25 - X[..., 0])
+    ms = Microstructure.from_levelset(tilted, periodic=False, order=order)
+    row = np.stack([0.5 + np.linspace(-1.0, 1.5, 26) / n, np.full(26, 0.5), np.linspace(-1.0, 1.5, 26) / n], 1)
+    row[:, 0] -= 0.05  # off the zero set, inside the slab's straight part: phi = -0.05 / sqrt(2)
+    assert np.allclose(ms.phi(row), -0.05 / np.sqrt(2.0), atol=0.05 / n, rtol=0)  # replicated: 0.7 steps
+
+
+def test_a_trace_beside_a_box_edge_meshes_valid():
+    """A sphere crossing x = 0 and z = 0 whose trace on x = 0 passes 0.4 grid steps above the edge
+    (x = 0, z = 0), and 0.2 steps (crossing) below it: a thin matrix wedge along the edge. With
+    replicated border nodes the surface folded there and the volume recovery failed."""
+    n = 32
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), -1)
+    r, cx = 0.25, 0.12
+    for offset in (0.4 / n, -0.2 / n):
+        centre = np.array([cx, 0.5, np.sqrt(r * r - cx * cx) + offset])
+        phi = np.linalg.norm(X - centre, axis=-1) - r
+        ms = Microstructure.from_levelset(phi, periodic=False)
+        mesh = mesh_rve(ms, MeshConfig(iis=0.1, periodic=False))
+        _check_plain_box(mesh, ms)
+        assert quality_report(mesh)["min_dihedral_deg"] >= 5.0
 
 
 def test_labels_the_box_splits_mesh_one_inclusion_per_part():

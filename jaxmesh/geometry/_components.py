@@ -145,6 +145,32 @@ def frame_indices(origin, shape, grid_shape, periodic: bool) -> list[np.ndarray]
     return idx
 
 
+def extrapolate_beyond_domain(field: np.ndarray, origin, grid_shape) -> np.ndarray:
+    """A window field whose nodes beyond a non-periodic grid are linear continuations of the last
+    two nodes inside (ghost = border + k (border - next inner)), axis by axis.
+
+    Windows take replicated border nodes there (`frame_indices`); a B-spline through them bends
+    the level set to meet the box plane at a right angle within the last cell (a crease: curvature
+    sources of a tenth of a step, and surfaces that fold where a trace passes near a box edge). A
+    linear field is reproduced exactly up to the plane and beyond it.
+    """
+    out = np.array(field, dtype=float, copy=True)
+    for a, (o, n) in enumerate(zip(origin, grid_shape)):
+        u = int(o) + np.arange(out.shape[a])  # global node index along the axis
+        first, last = -int(o), int(n) - 1 - int(o)  # window indices of grid nodes 0 and n - 1
+        if n < 2:
+            continue
+        view = np.moveaxis(out, a, 0)  # a view: assignments write into out
+        for ghosts, border, inner, sign in ((np.flatnonzero(u < 0), first, first + 1, -1),
+                                            (np.flatnonzero(u >= n), last, last - 1, 1)):
+            if not len(ghosts) or not (0 <= border < out.shape[a] and 0 <= inner < out.shape[a]):
+                continue
+            k = sign * (ghosts - border)  # steps beyond the border node, >= 1
+            slope = view[border] - view[inner]
+            view[ghosts] = view[border][None] + k.reshape((-1,) + (1,) * (out.ndim - 1)) * slope[None]
+    return out
+
+
 def take(array: np.ndarray, indices: list[np.ndarray]) -> np.ndarray:
     """array at the outer product of per-axis node indices."""
     return array[np.ix_(*indices)]

@@ -54,14 +54,9 @@ def _pad_to_bucket(data):
 def _window_phi(data, origin, center, half, box, window_box, points, *, cubic, periodic):
     """Level set of one window: the B-spline (or multilinear) interpolant inside the core, and
     outside it the value at the point clamped onto the core plus the distance to the core. Not
-    periodic: points are first clamped to the sampled range [0, L - step] (an extrusion beyond it)."""
+    periodic: the window's nodes beyond the grid hold linear continuations of the border samples
+    (`_components.extrapolate_beyond_domain`), so the last cell before x = L is interpolated too."""
     points = jnp.asarray(points)
-    if not periodic:
-        # beyond the first and last samples (the last one sits a step before x = L) the border
-        # samples go on unchanged: a B-spline through the replicated nodes would overshoot there and
-        # make a spurious, nearly flat zero set where phi is close to zero at the border
-        last = box - window_box / jnp.asarray(data.shape, dtype=window_box.dtype)
-        points = jnp.clip(points, 0.0, last)
     u = points - center
     if periodic:
         u = minimum_image(u, box)
@@ -558,6 +553,8 @@ class Microstructure:
                 lower = np.where(starts[c - 1] == 0, 0.0, lower)
                 upper = np.where(starts[c - 1] + lengths[c - 1] == shape, np.asarray(box, float), upper)
             centre, half = zip(*(comp.core_geometry(win, k, spacing, W.shape) for k in range(len(shape))))
+            if not periodic:  # the level set goes on beyond the box as it meets it, no crease
+                W = comp.extrapolate_beyond_domain(W, win.origin, shape)
             data = _pad_to_bucket(bspline_coefficients(W) if order == "cubic" else jnp.asarray(W))
             args = [jnp.asarray(a, dtype=data.dtype) for a in
                     (win.origin * spacing, centre, half, box, np.asarray(data.shape) * spacing)]
