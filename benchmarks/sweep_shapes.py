@@ -203,6 +203,15 @@ def case_sphere_edge(out: Path, n=48):
     return p, [], "r 0.3 on an edge midpoint"
 
 
+def case_trace_by_edge(out: Path, n=64):
+    """r 0.2 crossing x = 0 and z = 0; its trace on x = 0 passes 0.006 (0.38 steps) above the edge
+    x = z = 0. Read with --no-periodic, its wrapped pieces at x ~ 1 and z ~ 1 are inclusions too."""
+    r, cx, offset = 0.2, 0.1, 0.006
+    centre = (cx, 0.5, float(np.sqrt(r * r - cx * cx)) + offset)
+    np.save(p := out / "trace_by_edge.npy", sd_sphere(_local(_grid(n), centre), r))
+    return p, [], "r 0.2, its trace on x = 0 0.38 steps from the edge x = z = 0"
+
+
 CASES = {
     "torus": case_torus,
     "torus_corner": case_torus_corner,
@@ -217,6 +226,7 @@ CASES = {
     "big_sphere": case_big_sphere,
     "sphere_corner": case_sphere_corner,
     "sphere_edge": case_sphere_edge,
+    "trace_by_edge": case_trace_by_edge,
     "grf_s1": _excursion(1),
     "grf_s2": _excursion(2),
 }

@@ -175,6 +175,22 @@ def test_grid_levelset_goes_on_linearly_beyond_the_samples(order):
     assert np.allclose(ms.phi(row), -0.05 / np.sqrt(2.0), atol=0.05 / n, rtol=0)  # replicated: 0.7 steps
 
 
+def test_bounds_hold_the_zero_set_in_the_last_cell():
+    """A ball whose centre lies beyond z = L reaches the last sample and widens up to z = L: the
+    inclusion's bounds, from which `label` decides what to evaluate, must hold that part too (from
+    the grid crossings alone they fell a grid step short: the validator saw labels against the field)."""
+    n = 64
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), -1)
+    phi = np.linalg.norm(X - np.array([0.1, 0.5, 1.179]), axis=-1) - 0.2  # cut by x = 0 too
+    ms = Microstructure.from_levelset(phi, periodic=False)
+    assert len(ms.inclusions) == 1 and ms.inclusions[0].upper[2] == 1.0
+    pts = np.stack(np.meshgrid(np.linspace(0.0, 0.3, 121), np.linspace(0.35, 0.65, 61),
+                               np.linspace((n - 1) / n, 1.0, 9), indexing="ij"), -1).reshape(-1, 3)
+    inside = ms.phi(pts) < 0
+    np.testing.assert_array_equal(ms.label(pts), inside.astype(np.int64))
+
+
 def test_a_trace_beside_a_box_edge_meshes_valid():
     """A sphere crossing x = 0 and z = 0 whose trace on x = 0 passes 0.4 grid steps above the edge
     (x = 0, z = 0), and 0.2 steps (crossing) below it: a thin matrix wedge along the edge. With

@@ -171,6 +171,15 @@ def extrapolate_beyond_domain(field: np.ndarray, origin, grid_shape) -> np.ndarr
     return out
 
 
+def within_nodes(origin, shape, first, last) -> np.ndarray:
+    """(shape) bool: window nodes whose global index lies in [first, last] on every axis."""
+    out = np.ones(tuple(shape), bool)
+    for k, (o, w, f, t) in enumerate(zip(origin, shape, first, last)):
+        u = int(o) + np.arange(w)
+        out &= ((u >= f) & (u <= t)).reshape((-1,) + (1,) * (len(shape) - 1 - k))
+    return out
+
+
 def take(array: np.ndarray, indices: list[np.ndarray]) -> np.ndarray:
     """array at the outer product of per-axis node indices."""
     return array[np.ix_(*indices)]

@@ -546,15 +546,16 @@ class Microstructure:
                 raise ValueError(comp.close_pairs_message(ids, gaps, nodes, shape, spacing, min_gap, where))
         inclusions = []
         for c, (win, W, own, desc, stat) in enumerate(zip(windows, fields, owns, descriptions, stats), 1):
+            if not periodic:  # the level set goes on beyond the box as it meets it, no crease
+                W = comp.extrapolate_beyond_domain(W, win.origin, shape)
+                # its zero set in the last cell (up to the node at x = L) belongs to the bounds too
+                own = (W < 0) & comp.within_nodes(win.origin, W.shape, np.zeros(len(shape)), np.asarray(shape))
             lo, hi = comp.crossing_bounds(W, own, win.full)
             lower, upper = (win.origin + lo) * spacing, (win.origin + hi) * spacing
-            if not periodic:  # cut by the domain boundary: the bounds reach the box (replicated beyond
-                # the last node, which sits a step before x = L)
+            if not periodic:  # cut by the domain boundary: the bounds reach the box
                 lower = np.where(starts[c - 1] == 0, 0.0, lower)
                 upper = np.where(starts[c - 1] + lengths[c - 1] == shape, np.asarray(box, float), upper)
             centre, half = zip(*(comp.core_geometry(win, k, spacing, W.shape) for k in range(len(shape))))
-            if not periodic:  # the level set goes on beyond the box as it meets it, no crease
-                W = comp.extrapolate_beyond_domain(W, win.origin, shape)
             data = _pad_to_bucket(bspline_coefficients(W) if order == "cubic" else jnp.asarray(W))
             args = [jnp.asarray(a, dtype=data.dtype) for a in
                     (win.origin * spacing, centre, half, box, np.asarray(data.shape) * spacing)]
