@@ -118,11 +118,14 @@ def check_params_against_box(params: SizeParams, box: Sequence[float]) -> None:
 
 # ----------------------------------------------------------------------------- source points
 class SourceEdges(NamedTuple):
-    """Grid edges crossed by phi = 0 (NumPy): flat node indices a, b and the edge axis."""
+    """Grid edges crossed by phi = 0 (NumPy): flat node indices a, b and the edge axis. Not periodic,
+    an edge from the last slice towards x = L has b = a and `before` the node before a (its far
+    value is the linear continuation 2 phi_a - phi_before, as the level sets go on); -1 elsewhere."""
 
     a: np.ndarray
     b: np.ndarray
     axis: np.ndarray
+    before: np.ndarray | None = None
 
 
 def interface_edges(values: ArrayLike, periodic: bool = True) -> SourceEdges:
@@ -136,14 +139,22 @@ def interface_edges(values: ArrayLike, periodic: bool = True) -> SourceEdges:
         :class:`SourceEdges`, each (s,): a fixed sign pattern, so that crossings computed from it
         are differentiable in the values (:func:`interface_sources`).
     """
-    inside = np.asarray(values) < 0
+    values = np.asarray(values)
+    inside = values < 0
     flat = np.arange(inside.size).reshape(inside.shape)
     found = []
     for axis in range(inside.ndim):
         cross = inside != np.roll(inside, -1, axis=axis)
+        if not periodic:  # the last slice's edges end at x = L, where phi is the linear continuation
+            last = (slice(None),) * axis + (-1,)
+            beyond = 2 * values[last] - values[(slice(None),) * axis + (-2,)]
+            cross[last] = inside[last] != (beyond < 0)
+        b = np.roll(flat, -1, axis=axis)
+        before = np.full(inside.shape, -1)
         if not periodic:
-            cross[(slice(None),) * axis + (-1,)] = False  # no edge leaves the last slice
-        found.append((flat[cross], np.roll(flat, -1, axis=axis)[cross], np.full(int(cross.sum()), axis)))
+            b[last] = flat[last]
+            before[last] = np.take(flat, -2, axis=axis)
+        found.append((flat[cross], b[cross], np.full(int(cross.sum()), axis), before[cross]))
     return SourceEdges(*(np.concatenate(x).astype(np.int64) for x in zip(*found)))
 
 
@@ -199,6 +210,8 @@ def interface_sources(field, box: Sequence[float] | None = None, *, labels: Arra
     shape = np.shape(values)
     phi = jnp.asarray(values).reshape(-1)
     pa, pb = phi[edges.a], phi[edges.b]
+    if edges.before is not None and (edges.before >= 0).any():
+        pb = jnp.where(jnp.asarray(edges.before >= 0), 2 * pa - phi[edges.before], pb)
     spacing = np.asarray(box) / np.asarray(shape)
     base = np.stack(np.unravel_index(edges.a, shape), axis=-1) * spacing
     step = np.eye(len(shape))[edges.axis] * spacing

@@ -12,6 +12,7 @@ import pytest
 from jaxmesh import MeshConfig, Microstructure, mesh_rve, quality_report, sphere_sdf, validate
 from jaxmesh._cli import main
 from jaxmesh._quality import signed_volumes
+from jaxmesh._sizing import interface_sources
 
 BOX = (1.0, 1.0, 1.0)
 # centred; cut by a face, by an edge (two faces), by a corner (three faces)
@@ -165,6 +166,9 @@ def test_grid_levelset_goes_on_linearly_beyond_the_samples(order):
     z = np.linspace((n - 2) / n, 1.0 + 1.0 / n, 61)
     col = np.stack([np.full_like(z, 0.5), np.full_like(z, 0.5), z], 1)
     assert np.allclose(ms.phi(col), z - top, atol=0.05 / n, rtol=0)  # replicated nodes: 2 steps off
+    # the size function sees that top: crossings in the last cell are sources (none before)
+    sources = np.asarray(interface_sources(ms)[0])
+    assert abs(sources[:, 2].max() - top) < 1e-6
     # a plane crossing z = 0 at 45 degrees: its level set stays straight through the first cell
     tilted = (X[..., 0] - X[..., 2] - 0.5) / np.sqrt(2.0)
     tilted = np.maximum(tilted, np.abs(X[..., 1] - 0.5) - 0.2)
