@@ -151,15 +151,15 @@ def extrapolate_beyond_domain(field: np.ndarray, origin, grid_shape) -> np.ndarr
 
     Windows take replicated border nodes there (`frame_indices`); a B-spline through them bends
     the level set to meet the box plane at a right angle within the last cell (a crease: curvature
-    sources of a tenth of a step, and surfaces that fold where a trace passes near a box edge). A
-    linear field is reproduced exactly up to the plane and beyond it.
+    radii below a grid step, and surfaces that fold where a trace passes near a box edge). A linear
+    field is reproduced exactly up to the plane and beyond it.
     """
     out = np.array(field, dtype=float, copy=True)
     for a, (o, n) in enumerate(zip(origin, grid_shape)):
-        u = int(o) + np.arange(out.shape[a])  # global node index along the axis
-        first, last = -int(o), int(n) - 1 - int(o)  # window indices of grid nodes 0 and n - 1
         if n < 2:
             continue
+        u = int(o) + np.arange(out.shape[a])  # global node index along the axis
+        first, last = -int(o), int(n) - 1 - int(o)  # window indices of grid nodes 0 and n - 1
         view = np.moveaxis(out, a, 0)  # a view: assignments write into out
         for ghosts, border, inner, sign in ((np.flatnonzero(u < 0), first, first + 1, -1),
                                             (np.flatnonzero(u >= n), last, last - 1, 1)):
