@@ -153,8 +153,9 @@ def test_a_piece_the_box_cuts_thinner_than_a_grid_step():
 def test_grid_levelset_goes_on_linearly_beyond_the_samples(order):
     """Samples stop a step before x = L. Beyond the border samples the field is their linear
     continuation: a slab whose flat top lies between the last sample and z = L keeps that top there,
-    to a small fraction of a step, with no overshoot and no crease (replicated border nodes bent the B-spline in the last
-    cell: an overshoot under a flat top, a right-angle crease where a surface crosses a plane)."""
+    to a small fraction of a step, with no overshoot and no crease (replicated border nodes bent the
+    B-spline in the last cell: an overshoot under a flat top, a right-angle crease where a surface
+    crosses a plane)."""
     n = 24
     x = np.arange(n) / n
     X = np.stack(np.meshgrid(x, x, x, indexing="ij"), -1)
