@@ -457,9 +457,9 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig())
         mesh.metadata["time_intersections"] = time.perf_counter() - t2
         if len(bad):
             ids = np.unique(mesh.sides[bad.reshape(-1)])
-            where = mesh.points[mesh.triangles[bad[0]]].reshape(-1, 3).mean(axis=0)
+            x = tuple(round(float(v), 4) for v in mesh.points[mesh.triangles[bad[0]]].reshape(-1, 3).mean(axis=0))
             raise MeshingError("surfaces", f"{len(bad)} intersecting triangle pairs (regions {ids.tolist()}), the "
-                               f"first near x = ({', '.join(f'{v:.4g}' for v in where)}); seen where an inclusion "
+                               f"first near x = {x}; seen where an inclusion "
                                "is thinner than about a grid step (a membrane or a filament of the field); hint: "
                                "sample the field finer or smooth it, or a smaller iis / h_max")
     mesh.metadata["n_self_intersections"] = 0 if config.check_intersections else None

@@ -291,7 +291,7 @@ def _missing_place(surface: SurfaceMesh, miss: np.ndarray) -> str:
     if not miss.any():
         return ""
     centre = surface.points[surface.triangles[np.flatnonzero(miss)[0]]].mean(axis=0)
-    return " near x = (" + ", ".join(f"{v:.4g}" for v in centre) + ")"
+    return f" near x = {tuple(round(float(v), 4) for v in centre)}"
 
 
 def _missing_inclusion(surface: SurfaceMesh, miss: np.ndarray) -> int | None:
