@@ -97,9 +97,24 @@ def _spec_volume(spec) -> float:
 
 
 def _grid_shape(box: tuple[float, ...], n_min: int) -> tuple[int, ...]:
-    """Isotropic node-centred grid: n_min samples along the shortest axis."""
+    """Isotropic node-centred grid: n_min samples along the shortest axis. Raises ValueError when a
+    box length is not a whole number of those steps (`jaxmesh mesh` would refuse the file)."""
+    shape = _commensurate_shape(box, n_min)
+    if shape is None:
+        better = next((n for n in range(n_min + 1, 8 * n_min + 1) if _commensurate_shape(box, n)), None)
+        hint = (f"--grid {better} (step {min(box) / better:.6g})" if better else
+                f"--box {' '.join(f'{round(length / (min(box) / n_min)) * min(box) / n_min:.6g}' for length in box)}")
+        raise ValueError(f"--box {' '.join(f'{length:g}' for length in box)} with --grid {n_min}: the box lengths are "
+                         f"not whole numbers of the grid step {min(box) / n_min:.6g}, and a level-set grid needs the "
+                         f"same step on every axis. Hint: {hint}.")
+    return shape
+
+
+def _commensurate_shape(box: tuple[float, ...], n_min: int) -> tuple[int, ...] | None:
     step = min(box) / n_min
-    return tuple(int(round(length / step)) for length in box)
+    shape = tuple(int(round(length / step)) for length in box)
+    spacing = [length / n for length, n in zip(box, shape)]
+    return shape if max(spacing) - min(spacing) <= 1e-6 * max(spacing) else None
 
 
 # ---------------------------------------------------------------------------------------------

@@ -132,3 +132,19 @@ def test_generate_grf_names_the_inclusions_that_percolate(tmp_path, capsys):
     spanning = [inc.id for inc in load_input(out).inclusions if (np.asarray(inc.upper) - inc.lower >= 0.999).any()]
     assert [int(i) for i in listed.group(1).split(",")] == spanning
     assert "periodic image" not in generate(0.2)[1]
+
+
+def test_generate_refuses_a_box_that_is_not_whole_grid_steps(tmp_path, capsys):
+    """1.4 x 1 x 0.7 at 48 samples on the shortest side has no common step: generate refuses before
+    writing (the file would not load) and names a --grid that works, which then loads."""
+    from jaxmesh import load_input
+
+    out = tmp_path / "b.npz"
+    args = ["generate", str(out), "--kind", "sphere", "--n", "2", "--radius", "0.1", "--volume-fraction", "0.01",
+            "--box", "1.4", "1", "0.7"]
+    assert main([*args, "--grid", "48"]) == 2
+    err = capsys.readouterr().err
+    assert "not whole numbers of the grid step" in err and "Hint: --grid 49" in err
+    assert not out.exists()
+    assert main([*args, "--grid", "49"]) == 0
+    assert load_input(out).grid_shape == (98, 70, 49)
