@@ -108,6 +108,8 @@ def parse_args(argv=None):
     parser.add_argument("--iis", type=float, default=None, help="default 0.05, or the preset's")
     parser.add_argument("--nb-el", type=float, default=None, help="elements across the narrowest gaps (default 3, "
                         "or the preset's)")
+    parser.add_argument("--grad", type=float, default=None, help="gradient limit of the size function (default "
+                        "MeshConfig's 0.3, or the preset's)")
     parser.add_argument("--h", type=float, default=None, help="uniform size instead of the size function")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--input", default=None, help="mesh this input file instead of generating an RVE")
@@ -119,6 +121,7 @@ def parse_args(argv=None):
     chosen = PRESETS[args.preset] if args.preset else {"iis": 0.05, "nb_el": 3.0}
     args.iis = chosen["iis"] if args.iis is None else args.iis  # explicit options win over the preset
     args.nb_el = chosen["nb_el"] if args.nb_el is None else args.nb_el
+    args.grad = chosen.get("grad") if args.grad is None else args.grad  # None: MeshConfig's default
     return args
 
 
@@ -152,7 +155,9 @@ def run(args) -> None:
                                   radius=tuple(args.radius), min_gap=args.min_gap, seed=args.seed)
         ms = microstructure_from_specs(specs, box, (args.grid,) * 3)
     rows.append(("input (generate or read)", f"{time.perf_counter() - t:.2f}", peak_rss_gb()))
-    config = MeshConfig(iis=args.iis, nb_el=args.nb_el, h=args.h, seed=args.seed)
+    grad = {} if args.grad is None else {"grad": args.grad}
+    config = MeshConfig(iis=args.iis, nb_el=args.nb_el, h=args.h, seed=args.seed, **grad)
+    args.grad = config.grad
 
     t = time.perf_counter()
     if args.h is not None:
@@ -169,7 +174,7 @@ def run(args) -> None:
     predicted = float(predicted_element_count(h_values, ms.box))
     if args.estimate:
         print(f"predicted count (c * integral h^-3): {predicted:.0f}; {len(ms.inclusions)} inclusions, "
-              f"volume fraction {ms.volume_fraction():.4f}, iis {args.iis}, nb_el {args.nb_el}")
+              f"volume fraction {ms.volume_fraction():.4f}, iis {args.iis}, nb_el {args.nb_el}, grad {args.grad}")
         return
 
     t = time.perf_counter()
@@ -217,7 +222,7 @@ def run(args) -> None:
           f"{args.compilation_cache or 'off'}")
     print(f"# RVE: {args.input or 'generated'}, {len(ms.inclusions)} inclusions, volume fraction "
           f"{ms.volume_fraction():.4f}, min gap {args.min_gap}, radius {tuple(args.radius)}, grid "
-          f"{tuple(ms.grid_shape)}; preset {args.preset}: iis {args.iis}, nb_el {args.nb_el}, h {args.h}; "
+          f"{tuple(ms.grid_shape)}; preset {args.preset}: iis {args.iis}, nb_el {args.nb_el}, grad {args.grad}, h {args.h}; "
           f"predicted count {predicted:.0f}")
     print("| stage | time (s) | peak RSS so far (GiB) |")
     print("| --- | ---: | ---: |")
