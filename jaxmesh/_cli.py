@@ -121,6 +121,30 @@ def _commensurate_shape(box: tuple[float, ...], n_min: int) -> tuple[int, ...] |
 # info
 
 
+def _print_worst_cell(quality: dict, periodic: bool) -> None:
+    """Where the worst cell is; when it is bad and sits on a box plane beside an interface, the known
+    cause (an interface grazing the box leaves a thin wedge of the domain there)."""
+    cell = quality.get("worst_cell")
+    if not cell:
+        return
+    where = ", ".join(f"{v:.4g}" for v in cell["centroid"])
+    what = "matrix" if cell.get("inclusion_id", 0) == 0 else f"inclusion {cell['inclusion_id']}"
+    line = f"    worst cell: q {cell['q']:.2g} at ({where}), {what}"
+    if cell.get("on_interface"):
+        line += ", a vertex on an interface"
+    plane = cell.get("nearest_box_plane")
+    if plane:
+        name = f"{'xyz'[plane['axis']]} = {plane['at']:g}"
+        line += f", {plane['distance']:.2g} from the box plane {name}"
+    if "n_dihedral_below_10" in quality:
+        line += f"; {quality['n_dihedral_below_10']} tets with a dihedral angle below 10 deg"
+    print(line)
+    if plane and cell["q"] < 0.1 and cell.get("on_interface") and plane["distance"] == 0.0:
+        roll = " (np.roll the periodic grid to move the box planes away from it)" if periodic else ""
+        print(f"    note: an interface meets or grazes the box plane {name} there, leaving a wedge of the domain "
+              f"thinner than the elements{roll}")
+
+
 def _cmd_info(args: argparse.Namespace) -> int:
     from .io._read import load_input
 
@@ -168,6 +192,7 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
              else f"min angle {quality['min_angle_deg']:.1f} deg")
     print(f"    quality: mean q {quality['q_mean']:.3f}, min q {quality['q_min']:.3f}, "
           f"q<0.3: {100 * quality['frac_below']:.2f}%, {worst}")
+    _print_worst_cell(quality, mesh.periodic)
     mesh.write(args.output)
     _progress("write", f"-> {args.output}", t0)
     if args.report:

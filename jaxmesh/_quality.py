@@ -182,8 +182,8 @@ def quality_report(mesh, *, bins: int = 20, threshold: float = 0.3) -> dict:
         threshold: the "bad element" quality threshold (paper: 0.3).
     Returns:
         dict with n_points, n_cells, dim, cells per inclusion, q_min/q_mean/q_percentiles,
-        n_below / frac_below threshold, min dihedral (3D) or min angle (2D) in degrees, and
-        hist_edges / hist_counts.
+        n_below / frac_below threshold, min dihedral (3D, with the count of tets below 10 deg) or
+        min angle (2D) in degrees, hist_edges / hist_counts, and the worst cell (`worst_cell`).
 
     Example: ``json.dumps(quality_report(mesh))``.
     """
@@ -223,6 +223,30 @@ def quality_report(mesh, *, bins: int = 20, threshold: float = 0.3) -> dict:
         dih = dihedral_angles(points, cells)
         report["min_dihedral_deg"] = float(dih.min())
         report["max_dihedral_deg"] = float(dih.max())
+        report["n_dihedral_below_10"] = int(np.sum(dih.min(axis=1) < 10.0))
     else:
         report["min_angle_deg"] = float(min_angles(points, cells).min())
+    report["worst_cell"] = worst_cell(points, cells, q, ids, getattr(mesh, "box", None))
     return report
+
+
+def worst_cell(points: np.ndarray, cells: np.ndarray, q: np.ndarray, ids=None, box=None) -> dict:
+    """Where the lowest-quality cell is: index, q, centroid, inclusion id, whether a vertex lies on an
+    interface (shared with a cell of another label), and its nearest box plane (axis, side 0 or L,
+    distance of the closest vertex). Says where to look when a mesh is valid but has a bad cell."""
+    k = int(np.argmin(q))
+    corners = points[cells[k]]
+    out: dict = {"index": k, "q": float(q[k]), "centroid": [float(v) for v in corners.mean(axis=0)]}
+    if ids is not None:
+        ids = np.asarray(ids)
+        out["inclusion_id"] = int(ids[k])
+        other = np.zeros(len(points), bool)
+        other[cells[ids != ids[k]].ravel()] = True
+        out["on_interface"] = bool(other[cells[k]].any())
+    if box is not None:
+        L = np.asarray(box, dtype=float)
+        gaps = np.minimum(corners, L - corners).min(axis=0)  # per axis, the closest vertex to a plane
+        axis = int(np.argmin(gaps))
+        side = 0.0 if np.min(corners[:, axis]) <= L[axis] - np.max(corners[:, axis]) else float(L[axis])
+        out["nearest_box_plane"] = {"axis": axis, "at": side, "distance": float(max(gaps[axis], 0.0))}
+    return out

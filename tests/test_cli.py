@@ -24,7 +24,7 @@ def test_generate_info_mesh_validate_2d(tmp_path, capsys):
     assert main(["validate", str(out), "--geometry", str(rve)]) == 0
 
 
-def test_mesh_3d_sphere(tmp_path):
+def test_mesh_3d_sphere(tmp_path, capsys):
     import jax.numpy as jnp
 
     from jaxmesh import Microstructure, sphere_sdf
@@ -38,6 +38,9 @@ def test_mesh_3d_sphere(tmp_path):
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["metadata"]["validation"]["ok"] is True
     assert report["quality"]["n_cells"] > 100
+    worst = report["quality"]["worst_cell"]
+    assert re.search(rf"worst cell: q {worst['q']:.2g} at \(.*\), (matrix|inclusion 1).* from the box plane [xyz] = ",
+                     capsys.readouterr().out)
     assert main(["validate", str(out), "--geometry", str(path)]) == 0
 
 

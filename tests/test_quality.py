@@ -148,6 +148,26 @@ def test_quality_report_counts_bad_cells():
     assert len(rep["hist_counts"]) == 10
 
 
+def test_quality_report_locates_the_worst_cell():
+    """A node pushed towards the plane x = 0 flattens its cells there: the report names the worst one,
+    its plane (distance 0: it has a vertex on it) and whether it touches an interface (at x = 2/3 here)."""
+    m = structured_mesh((3, 3, 3))
+    k = int(np.flatnonzero(np.all(np.isclose(m.points, 1 / 3), axis=1))[0])
+    m.points[k, 0] = 0.03
+    centroids = m.points[m.cells].mean(axis=1)
+    m.inclusion_id[centroids[:, 0] > 2 / 3] = 1
+    rep = quality_report(m)
+    q = cell_quality(m.points, m.cells)
+    worst = rep["worst_cell"]
+    assert worst["index"] == int(np.argmin(q)) and worst["q"] == pytest.approx(q.min()) and k in m.cells[worst["index"]]
+    assert worst["centroid"] == pytest.approx(centroids[worst["index"]].tolist())
+    assert worst["nearest_box_plane"] == {"axis": 0, "at": 0.0, "distance": 0.0}
+    assert worst["inclusion_id"] == 0 and worst["on_interface"] is False
+    assert rep["n_dihedral_below_10"] == int(np.sum(dihedral_angles(m.points, m.cells).min(axis=1) < 10))
+    m.inclusion_id[:] = np.where(centroids[:, 0] < 1 / 3, 1, 0)
+    assert quality_report(m)["worst_cell"]["on_interface"] is True
+
+
 def test_bad_inputs_raise_value_error():
     with pytest.raises(ValueError, match="points"):
         cell_quality(np.zeros((4, 4)), ONE_TET)
