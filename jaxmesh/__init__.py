@@ -12,6 +12,7 @@ from ._homogenize import homogenize_conductivity as homogenize_conductivity
 from ._mesh import Mesh as Mesh
 from ._mesh import make_periodic_pairs as make_periodic_pairs
 from ._mesh2d import mesh_2d as mesh_2d
+from ._periodic import clearest_roll as clearest_roll
 from ._pipeline import MeshConfig as MeshConfig
 from ._pipeline import mesh_rve as mesh_rve
 from ._plot import plot_mesh as plot_mesh

@@ -121,6 +121,15 @@ def _commensurate_shape(box: tuple[float, ...], n_min: int) -> tuple[int, ...] |
 # info
 
 
+def _roll_arg(values):
+    if values is None or values == ["auto"]:
+        return None if values is None else "auto"
+    try:
+        return tuple(int(v) for v in values)
+    except ValueError:
+        raise ValueError(f"--roll: expected 'auto' or one integer (grid samples) per axis, got {' '.join(values)}") from None
+
+
 def _print_worst_cell(quality: dict, periodic: bool) -> None:
     """Where the worst cell is; when it is bad and sits on a box plane beside an interface, the known
     cause (an interface grazing the box leaves a thin wedge of the domain there)."""
@@ -140,7 +149,7 @@ def _print_worst_cell(quality: dict, periodic: bool) -> None:
         line += f"; {quality['n_dihedral_below_10']} tets with a dihedral angle below 10 deg"
     print(line)
     if plane and cell["q"] < 0.1 and cell.get("on_interface") and plane["distance"] == 0.0:
-        roll = " (np.roll the periodic grid to move the box planes away from it)" if periodic else ""
+        roll = " (--roll auto moves the box planes of a periodic grid away from the inclusions' extremes)" if periodic else ""
         print(f"    note: an interface meets or grazes the box plane {name} there, leaving a wedge of the domain "
               f"thinner than the elements{roll}")
 
@@ -182,7 +191,8 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     config = MeshConfig(h=args.h, periodic=not args.no_periodic, seed=args.seed, backend=args.backend,
-                        max_elements=args.max_elements if args.max_elements > 0 else None, **_size_kwargs(args))
+                        max_elements=args.max_elements if args.max_elements > 0 else None, roll=_roll_arg(args.roll),
+                        **_size_kwargs(args))
     mesh = mesh_rve(args.input, config, box=_box_arg(args.box), progress=lambda line: print(line, flush=True))
     validation = mesh.metadata["validation"]
     for name, check in validation["checks"].items():
@@ -306,6 +316,11 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--backend", choices=("conforming", "tetwild"), default="conforming",
                    help="3D volume mesher: conforming (default: exact surfaces, periodic or not) or tetwild (fTetWild: "
                         "robust to damaged surfaces, not conforming, not periodic; edge length --h or --iis)")
+    m.add_argument("--roll", nargs="+", default=None, metavar="auto|K",
+                   help="periodic grid inputs: mesh the grid rolled so that sample K_a lies at x_a = 0; 'auto' "
+                        "takes the planes farthest from the inclusions' extremes (box faces grazing an inclusion "
+                        "leave thin wedges of bad elements). The mesh is in the rolled frame; the report's "
+                        "metadata.roll gives the offset")
     m.add_argument("--seed", type=int, default=0)
     m.add_argument("--report", default=None, help="JSON report path")
     m.add_argument("--plot", default=None, help="PNG path: mesh coloured by phase + quality histogram")

@@ -94,3 +94,31 @@ def nearest_centres(points, centres, box, k: int) -> tuple[np.ndarray, np.ndarra
 def wrap_index(index, n):
     """Periodic grid index wrap (integer arrays, NumPy or JAX)."""
     return index % n
+
+
+def plane_clearances(lower, upper, box, shape) -> list[np.ndarray]:
+    """Per axis a, (n_a,) the periodic distance from each grid plane x_a = k L_a / n_a to the nearest
+    inclusion extent bound along a (lower[:, a] or upper[:, a]).
+
+    A box plane near such a bound meets an inclusion at a grazing angle (a shallow cap or a surface
+    just clear of it), which leaves a wedge of the domain thinner than the elements.
+    lower, upper: (N, d) inclusion bounds (unwrapped); box: (d,); shape: grid samples per axis.
+    """
+    lower, upper = np.asarray(lower, float).reshape(-1, len(box)), np.asarray(upper, float).reshape(-1, len(box))
+    out = []
+    for a, (length, n) in enumerate(zip(box, shape)):
+        planes = np.arange(n) * (length / n)
+        bounds = np.concatenate([lower[:, a], upper[:, a]])
+        if not len(bounds):
+            out.append(np.full(n, np.inf))
+            continue
+        gap = np.abs(minimum_image(planes[:, None] - bounds[None, :], np.array([length])))
+        out.append(gap.min(axis=1))
+    return out
+
+
+def clearest_roll(lower, upper, box, shape) -> tuple[int, ...]:
+    """Per axis, the grid sample k whose plane lies farthest from every inclusion bound
+    (`plane_clearances`); 0 where the plane x_a = 0 is already as clear. Rolling the periodic
+    grid by -k puts the box faces there."""
+    return tuple(0 if c[0] >= c.max() else int(np.argmax(c)) for c in plane_clearances(lower, upper, box, shape))

@@ -38,6 +38,11 @@ class MeshConfig:
         max_elements: refuse (ValueError, before the surfaces) a 3D conforming mesh whose size function
             predicts more tetrahedra than this; None: no limit. The estimate is
             _TETS_PER_PREDICTED * c * integral of h^-3 (`cellwise_element_count`).
+        roll: None (the box as given), "auto" or d integers: mesh a periodic file input rolled so
+            that grid sample roll[a] lies at x_a = 0. "auto" takes, per axis, the grid plane farthest
+            from every inclusion's extent bounds (`jaxmesh.clearest_roll`): box faces that graze an
+            inclusion leave wedges thinner than the elements. The mesh is in the rolled frame;
+            metadata['roll'] gives the samples and the offset (mesh x = file x - offset, mod L).
         backend: 3D volume mesher. "conforming" (default): keeps every surface triangle, periodic or not.
             "tetwild": fTetWild (pytetwild) on the marching-cubes surface of the grid at edge length
             h (or iis), robust to damaged surfaces but NOT conforming (interface nodes only near the
@@ -56,6 +61,7 @@ class MeshConfig:
     interior: str = "bcc"
     max_elements: float | None = 5e6
     backend: str = "conforming"
+    roll: str | tuple[int, ...] | None = None
 
     def __post_init__(self):
         for name in ("iis", "nb_el", "curv_alpha", "grad", "h_max", "h", "max_elements"):
@@ -71,6 +77,11 @@ class MeshConfig:
             raise ValueError(f"MeshConfig.backend: expected 'conforming' or 'tetwild', got {self.backend!r}")
         if self.interior not in ("bcc", "octree"):
             raise ValueError(f"MeshConfig.interior: expected 'bcc' or 'octree', got {self.interior!r}")
+        if self.roll is not None and self.roll != "auto" and not (
+                isinstance(self.roll, tuple) and all(isinstance(k, int) and not isinstance(k, bool) for k in self.roll)):
+            raise ValueError(f"MeshConfig.roll: expected None, 'auto' or a tuple of integers, got {self.roll!r}")
+        if self.roll is not None and not self.periodic:
+            raise ValueError("MeshConfig.roll needs periodic=True: the faces of a plain box are the domain's")
         if self.h_max is not None and self.h_max < self.iis:
             raise ValueError(f"MeshConfig.h_max: expected >= iis = {self.iis}, got {self.h_max}")
 
@@ -96,14 +107,34 @@ def _check_sizes_against_box(config: MeshConfig, box) -> None:
         )
 
 
-def _as_microstructure(source, box=None, periodic: bool = True):
+def _as_microstructure(source, box=None, periodic: bool = True, roll=None):
+    """The Microstructure of source, and the roll applied ({} when none)."""
     from .geometry._microstructure import Microstructure
     from .io._read import load_input
 
     if isinstance(source, Microstructure):
-        return source
+        if roll is not None:
+            raise ValueError("MeshConfig.roll needs an input file (the grid is rolled as it is read); hint: pass "
+                             "the path, or build the Microstructure from np.roll(phi, ...)")
+        return source, {}
     if isinstance(source, (str, Path)):
-        return load_input(source, box=box, periodic=periodic)
+        ms = load_input(source, box=box, periodic=periodic)
+        if roll is None:
+            return ms, {}
+        from ._periodic import clearest_roll, plane_clearances
+
+        bounds = (np.array([inc.lower for inc in ms.inclusions]), np.array([inc.upper for inc in ms.inclusions]))
+        clear = plane_clearances(*bounds, ms.box, ms.grid_shape)
+        samples = clearest_roll(*bounds, ms.box, ms.grid_shape) if roll == "auto" else tuple(roll)
+        if len(samples) != ms.dim:
+            raise ValueError(f"MeshConfig.roll: expected {ms.dim} integers for this {ms.dim}D input, got {samples}")
+        step = np.asarray(ms.box, float) / np.asarray(ms.grid_shape)
+        info = {"samples": [int(k) for k in samples], "offset": [float(k * s) for k, s in zip(samples, step)],
+                "clearance_before": float(min(c[0] for c in clear)),
+                "clearance_after": float(min(c[k % len(c)] for c, k in zip(clear, samples)))}
+        if any(samples):
+            ms = load_input(source, box=box, periodic=periodic, roll=samples)
+        return ms, info
     raise ValueError(
         f"expected a Microstructure or an input path (.npy/.npz/.tif), got {type(source).__name__}; "
         "hint: jaxmesh.load_input(path) or Microstructure.from_levelset(phi)"
@@ -142,13 +173,16 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
         return now
 
     t = time.perf_counter()
-    ms = _as_microstructure(source, box=box, periodic=config.periodic)
+    ms, roll = _as_microstructure(source, box=box, periodic=config.periodic, roll=config.roll)
     if config.backend == "conforming" and ms.periodic != config.periodic:
         raise ValueError(f"MeshConfig.periodic is {config.periodic} but the microstructure has periodic={ms.periodic} "
                          "(its inclusions are connected across the faces only when periodic); hint: build it with "
                          "the same flag (from_levelset(..., periodic=...)) or set MeshConfig(periodic=...) to match")
     _check_sizes_against_box(config, ms.box)
-    t = stage("input", t, f"{ms.dim}D, {len(ms.inclusions)} inclusions, grid {tuple(ms.grid_shape)}")
+    rolled = (f"; rolled by {tuple(roll['samples'])} samples (the mesh's origin is the file's "
+              f"{tuple(round(v, 6) for v in roll['offset'])}; box planes {roll['clearance_after']:.3g} from the "
+              f"nearest inclusion extreme, {roll['clearance_before']:.3g} unrolled)") if roll else ""
+    t = stage("input", t, f"{ms.dim}D, {len(ms.inclusions)} inclusions, grid {tuple(ms.grid_shape)}{rolled}")
 
     if ms.dim == 2 and config.backend != "conforming":
         raise ValueError(f"backend {config.backend!r} meshes 3D inputs only; hint: 2D inputs use the default backend")
@@ -177,6 +211,8 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
     timings["total"] = time.perf_counter() - t_start
     mesh.metadata["timings"] = timings
     mesh.metadata["parameters"] = dataclasses.asdict(config)
+    if roll:
+        mesh.metadata["roll"] = roll
     return mesh
 
 

@@ -62,3 +62,42 @@ def test_sphere_trace_passing_just_above_a_box_edge():
     mesh = mesh_rve(ms, MeshConfig(seed=0))
     report = validate(mesh, ms)
     assert report.ok, report.summary()
+
+
+def test_clearest_roll_moves_the_box_planes_off_the_inclusion_extremes():
+    from jaxmesh import clearest_roll
+    from jaxmesh._periodic import plane_clearances
+
+    # bounds along x at 0.0001 (a cap grazing x = 0) and 0.4; along y at 0.05 and 0.95 (wrapping)
+    lower, upper = np.array([[0.0001, -0.05, 0.2]]), np.array([[0.4, 0.05, 0.6]])
+    clear = plane_clearances(lower, upper, (1.0, 1.0, 1.0), (10, 10, 10))
+    np.testing.assert_allclose(clear[0], [0.0001, 0.0999, 0.1999, 0.1, 0.0, 0.1, 0.2, 0.3, 0.2001, 0.1001], atol=1e-12)
+    np.testing.assert_allclose(clear[1][[0, 1, 5, 9]], [0.05, 0.05, 0.45, 0.05], atol=1e-12)
+    assert clearest_roll(lower, upper, (1.0, 1.0, 1.0), (10, 10, 10)) == (7, 5, 9)  # z: 0.9 is 0.3 from both
+    assert clearest_roll(lower[:0], upper[:0], (1.0, 1.0, 1.0), (10, 10, 10)) == (0, 0, 0)
+
+
+def test_roll_auto_meshes_a_grid_sphere_grazing_a_box_plane_without_slivers(tmp_path):
+    """A sphere 2e-6 across x = 0 (a 0.05 deg tet in an ellipsoid RVE like it): with roll 'auto' the box
+    planes move to the grid planes farthest from its extremes, the mesh is valid in the rolled frame,
+    its tets keep 10 deg, and the metadata gives the offset."""
+    from jaxmesh import quality_report
+
+    n, radius = 32, 0.2
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1)
+    centre = np.array([radius - 2e-6, 0.47, 0.55])
+    d = X - centre
+    d -= np.round(d)
+    np.save(tmp_path / "graze.npy", np.linalg.norm(d, axis=-1) - radius)
+    mesh = mesh_rve(tmp_path / "graze.npy", MeshConfig(roll="auto", seed=0))
+    roll = mesh.metadata["roll"]
+    assert roll["samples"][0] != 0 and roll["clearance_before"] < 1e-3 < 0.02 < roll["clearance_after"]
+    assert roll["offset"][0] == pytest.approx(roll["samples"][0] / n)
+    assert mesh.metadata["validation"]["ok"], mesh.metadata["validation"]
+    assert quality_report(mesh)["min_dihedral_deg"] >= 10.0
+    with pytest.raises(ValueError, match="periodic"):
+        MeshConfig(roll="auto", periodic=False)
+    with pytest.raises(ValueError, match="input file"):
+        spec = InclusionSpec("sphere", np.array([0.5, 0.5, 0.5]), np.full(3, 0.2), np.eye(3))
+        mesh_rve(microstructure_from_specs([spec], (1.0, 1.0, 1.0), (n,) * 3), MeshConfig(roll="auto"))

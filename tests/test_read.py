@@ -127,3 +127,23 @@ def test_npz_with_analytic_inclusions_uses_the_generator_hook(tmp_path, monkeypa
     assert isinstance(ms, Microstructure) and len(ms.inclusions) == 1
     monkeypatch.setitem(sys.modules, "jaxmesh._generate", types.ModuleType("jaxmesh._generate"))
     assert isinstance(load_input(tmp_path / "g.npz"), Microstructure)  # no hook at all
+
+
+def test_roll_reads_the_periodic_grid_shifted(tmp_path):
+    """roll=(k, ...) puts sample k at x = 0: the same as reading np.roll(phi, -k); analytic inclusions
+    written by the generator move with the grid; a plain box or a wrong length is refused."""
+    from jaxmesh import InclusionSpec, write_input
+
+    phi = _field()
+    np.save(tmp_path / "phi.npy", phi)
+    _same(load_input(tmp_path / "phi.npy", roll=(5, 0, 3)),
+          Microstructure.from_levelset(np.roll(phi, (-5, 0, -3), axis=(0, 1, 2))))
+    spec = InclusionSpec("sphere", np.array([0.5, 0.5, 0.5]), np.full(3, 0.25), np.eye(3))
+    write_input(tmp_path / "g.npz", [spec], (1.0, 1.0, 1.0), (24, 24, 24))
+    rolled = load_input(tmp_path / "g.npz", roll=(6, 0, 0))
+    inc = rolled.inclusions[0]
+    np.testing.assert_allclose((inc.lower + inc.upper) / 2, [0.25, 0.5, 0.5], atol=1e-9)  # 0.5 - 6/24
+    with pytest.raises(ValueError, match="periodic"):
+        load_input(tmp_path / "phi.npy", periodic=False, roll=(1, 0, 0))
+    with pytest.raises(ValueError, match="3 integers"):
+        load_input(tmp_path / "phi.npy", roll=(1, 0))

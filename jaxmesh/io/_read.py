@@ -29,6 +29,19 @@ def _construct(path, kind: str, array, box, periodic):
         raise ValueError(f"load_input({str(path)!r}): {err}") from None
 
 
+def _rolled(array: np.ndarray, roll, periodic: bool, path) -> np.ndarray:
+    """The periodic grid rolled so that sample roll[a] comes first along each axis a."""
+    if roll is None:
+        return array
+    if not periodic:
+        _fail(path, f"roll={tuple(roll)} needs a periodic input (the faces of a plain box are the domain's)",
+              "drop the roll, or read the input as periodic")
+    if len(roll) != array.ndim or not all(isinstance(k, (int, np.integer)) for k in roll):
+        _fail(path, f"expected roll as {array.ndim} integers (grid samples per axis), got {roll!r}",
+              "e.g. roll=(32, 0, 0) puts sample 32 along x at x = 0")
+    return np.roll(array, [-int(k) for k in roll], axis=tuple(range(array.ndim)))
+
+
 def _build(array: np.ndarray, box, periodic: bool, path):
     """Level set if real-valued, labelled image if integer / bool."""
     if array.dtype.kind in "biu":
@@ -39,7 +52,7 @@ def _build(array: np.ndarray, box, periodic: bool, path):
           "save phi as float64 or labels as an integer image")
 
 
-def _read_npz(path: Path, box, periodic):
+def _read_npz(path: Path, box, periodic, roll=None):
     try:
         with np.load(path, allow_pickle=False) as npz:
             data = {key: npz[key] for key in npz.files}
@@ -52,6 +65,13 @@ def _read_npz(path: Path, box, periodic):
         box = tuple(np.asarray(data["box"], dtype=float).ravel().tolist())
     if periodic is None:
         periodic = bool(np.asarray(data["periodic"]).item()) if "periodic" in data else True
+    if roll is not None:
+        key = "phi" if "phi" in data else "labels"
+        shape = np.shape(data[key])
+        data[key] = _rolled(np.asarray(data[key]), roll, periodic, path)
+        if "centers" in data:  # analytic inclusions move with the grid
+            length = np.asarray(box if box is not None else (1.0,) * len(shape), dtype=float)
+            data["centers"] = np.mod(np.asarray(data["centers"], float) - np.asarray(roll) * length / shape, length)
     if "kind" in data:  # analytic inclusions written by jaxmesh._generate: rebuild them exactly
         try:
             from .._generate import microstructure_from_npz
@@ -77,7 +97,7 @@ def _read_npz(path: Path, box, periodic):
     return _build(labels, box, periodic, path)
 
 
-def _read_vti(path: Path, box, periodic):
+def _read_vti(path: Path, box, periodic, roll=None):
     try:
         import pyvista
     except ImportError:
@@ -95,10 +115,10 @@ def _read_vti(path: Path, box, periodic):
     array = np.asarray(image.point_data[name]).reshape(dims[::-1]).transpose()  # VTK: x fastest
     if box is None:
         box = tuple(float(n * h) for n, h in zip(image.dimensions, image.spacing) if n > 1)
-    return _build(array, box, periodic, path)
+    return _build(_rolled(array, roll, periodic, path), box, periodic, path)
 
 
-def load_input(path, box=None, periodic: bool | None = None):
+def load_input(path, box=None, periodic: bool | None = None, roll=None):
     """Read a microstructure from a file.
 
     Args:
@@ -108,6 +128,9 @@ def load_input(path, box=None, periodic: bool | None = None):
             level set; array axis 0 = x), .vti (pyvista; point data 'phi' or 'labels' or the first).
         box: (d,) cell lengths; overrides the file's; default from the file, else the unit cube.
         periodic: overrides the file's 'periodic'; default from the file, else True.
+        roll: optional d integers: read the periodic grid rolled so that sample roll[a] lies at
+            x_a = 0 (the box faces move to x_a = roll[a] L_a / n_a of the file's frame; the mesh is
+            then in the rolled frame). Analytic inclusions move with it. See `clearest_roll`.
 
     Returns:
         A Microstructure.
@@ -126,14 +149,14 @@ def load_input(path, box=None, periodic: bool | None = None):
         _fail(path, "no such file", "check the path (relative paths start from the working directory)")
     ext = "".join(path.suffixes[-1:]).lower()
     if ext == ".npz":
-        return _read_npz(path, box, periodic)
+        return _read_npz(path, box, periodic, roll)
     periodic = True if periodic is None else periodic
     if ext == ".npy":
         try:
             array = np.load(path, allow_pickle=False)
         except Exception as err:
             _fail(path, f"could not read it as .npy ({err})", "write it with numpy.save")
-        return _build(np.asarray(array), box, periodic, path)
+        return _build(_rolled(np.asarray(array), roll, periodic, path), box, periodic, path)
     if ext in (".tif", ".tiff"):
         try:
             from skimage import io as skio
@@ -141,7 +164,7 @@ def load_input(path, box=None, periodic: bool | None = None):
             array = np.asarray(skio.imread(str(path)))
         except Exception as err:
             _fail(path, f"could not read the TIFF ({err})", "save a single-channel 2D image or 3D stack")
-        return _build(array, box, periodic, path)
+        return _build(_rolled(array, roll, periodic, path), box, periodic, path)
     if ext == ".vti":
-        return _read_vti(path, box, periodic)
+        return _read_vti(path, box, periodic, roll)
     _fail(path, f"unknown extension {ext or '(none)'!r}", f"supported formats: {_FORMATS}")
