@@ -2,7 +2,8 @@
 # Robustness sweep (not a test): RVEs whose inclusions may cross or graze the box anywhere
 # (--box-gap 0), meshed with the CLI defaults. Prints one line per input: exit status, time,
 # tets, mean q, min dihedral, how many tets stay below 10 deg and how many of those have a node on
-# the box, and the validator's verdict. SUMMARY_ONLY=1 re-reads the meshes of an earlier run.
+# the box, and the validator's verdict. SUMMARY_ONLY=1 re-reads the meshes of an earlier run;
+# MESH_ARGS adds options to `jaxmesh mesh` (e.g. MESH_ARGS="--roll auto").
 #   bash benchmarks/sweep_grazing.sh [OUT_DIR] [SEEDS...]      (default: /tmp/jaxmesh_grazing, seeds 0-3)
 set -u
 here="$(cd "$(dirname "$0")/.." && pwd)"
@@ -12,7 +13,7 @@ out="${1:-/tmp/jaxmesh_grazing}"
 shift || true
 seeds="${*:-0 1 2 3}"
 mkdir -p "$out"
-echo "# $(date -u +%F\ %T) UTC, $(nproc) cores, commit $(git -C "$here" rev-parse --short HEAD)$(git -C "$here" diff --quiet HEAD -- jaxmesh || echo +modified)"
+echo "# $(date -u +%F\ %T) UTC, $(nproc) cores, commit $(git -C "$here" rev-parse --short HEAD)$(git -C "$here" diff --quiet HEAD -- jaxmesh || echo +modified), mesh options: ${MESH_ARGS:-none}"
 for kind in sphere ellipsoid; do
   for seed in $seeds; do
     name="$out/${kind}_$seed"
@@ -23,7 +24,8 @@ for kind in sphere ellipsoid; do
       --radius-std 0.02 --min-gap 0.02 --box-gap 0 --grid 64 --seed "$seed" > "$name.gen.log" 2>&1 || {
       echo "${kind} seed $seed: generate failed: $(tail -1 "$name.gen.log")"; continue; }
     start=$(date +%s)
-    "$jaxmesh" mesh "$name.npz" -o "$name.vtu" --report "$name.json" > "$name.mesh.log" 2>&1
+    # shellcheck disable=SC2086  # MESH_ARGS holds several words
+    "$jaxmesh" mesh "$name.npz" -o "$name.vtu" --report "$name.json" ${MESH_ARGS:-} > "$name.mesh.log" 2>&1
     rc=$?
     secs=$(( $(date +%s) - start ))
     fi
