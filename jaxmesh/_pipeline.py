@@ -128,10 +128,11 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None):
         samples = clearest_roll(*bounds, ms.box, ms.grid_shape) if roll == "auto" else tuple(roll)
         if len(samples) != ms.dim:
             raise ValueError(f"MeshConfig.roll: expected {ms.dim} integers for this {ms.dim}D input, got {samples}")
+        samples = tuple(k % n for k, n in zip(samples, ms.grid_shape))
         step = np.asarray(ms.box, float) / np.asarray(ms.grid_shape)
         info = {"samples": [int(k) for k in samples], "offset": [float(k * s) for k, s in zip(samples, step)],
                 "clearance_before": float(min(c[0] for c in clear)),
-                "clearance_after": float(min(c[k % len(c)] for c, k in zip(clear, samples)))}
+                "clearance_after": float(min(c[k] for c, k in zip(clear, samples)))}
         if any(samples):
             ms = load_input(source, box=box, periodic=periodic, roll=samples)
         return ms, info

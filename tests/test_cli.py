@@ -151,3 +151,12 @@ def test_generate_refuses_a_box_that_is_not_whole_grid_steps(tmp_path, capsys):
     assert not out.exists()
     assert main([*args, "--grid", "49"]) == 0
     assert load_input(out).grid_shape == (98, 70, 49)
+
+
+@pytest.mark.parametrize("roll, extra, message", [(["1", "x"], [], "one integer"),
+                                                  (["auto"], ["--no-periodic"], "periodic=True")])
+def test_mesh_refuses_a_bad_roll_before_meshing(tmp_path, capsys, roll, extra, message):
+    path, out = tmp_path / "phi.npy", tmp_path / "never.vtu"
+    np.save(path, np.ones((16, 16, 16)))
+    assert main(["mesh", str(path), "-o", str(out), "--roll", *roll, *extra]) == 2
+    assert message in capsys.readouterr().err and not out.exists()
