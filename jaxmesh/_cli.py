@@ -178,7 +178,21 @@ def _microstructure_info(ms) -> dict:
         "inclusions": len(ms.inclusions),
         "volume_fraction": round(float(ms.volume_fraction()), 6),
         "min_gap_on_grid": round(float(np.min(ms.dn2[ms.dn1 < spacing] if np.any(ms.dn1 < spacing) else ms.dn2)), 6),
+        **(_box_plane_info(ms) if ms.periodic and ms.inclusions else {}),
     }
+
+
+def _box_plane_info(ms) -> dict:
+    """How close the box planes come to an inclusion's extreme, as given and with --roll auto."""
+    import numpy as np
+
+    from ._periodic import clearest_roll, plane_clearances
+
+    bounds = (np.array([inc.lower for inc in ms.inclusions]), np.array([inc.upper for inc in ms.inclusions]))
+    clear = plane_clearances(*bounds, ms.box, ms.grid_shape)
+    best = clearest_roll(*bounds, ms.box, ms.grid_shape)
+    return {"box_plane_clearance": round(float(min(c[0] for c in clear)), 6),
+            "with_roll_auto": f"{min(c[k] for c, k in zip(clear, best)):.6g} (samples {list(best)})"}
 
 
 # ---------------------------------------------------------------------------------------------

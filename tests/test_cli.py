@@ -14,7 +14,9 @@ def test_generate_info_mesh_validate_2d(tmp_path, capsys):
     assert main(["generate", str(rve), "--dim", "2", "--kind", "sphere", "--n", "4", "--radius", "0.12",
                  "--radius-std", "0.01", "--min-gap", "0.05", "--grid", "128", "--seed", "3"]) == 0
     assert main(["info", str(rve)]) == 0
-    assert "inclusions: 4" in capsys.readouterr().out.replace("  ", " ").replace("  ", " ")
+    info = capsys.readouterr().out
+    assert "inclusions: 4" in info.replace("  ", " ").replace("  ", " ")
+    assert re.search(r"box_plane_clearance: [\d.e-]+\n\s+with_roll_auto: [\d.e-]+ \(samples \[\d+, \d+\]\)", info)
     out, report, plot = tmp_path / "m.vtu", tmp_path / "r.json", tmp_path / "m.png"
     assert main(["mesh", str(rve), "-o", str(out), "--h", "0.03", "--report", str(report), "--plot", str(plot)]) == 0
     data = json.loads(report.read_text())
