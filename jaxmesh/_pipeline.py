@@ -142,6 +142,21 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None):
     )
 
 
+def _grazing_hint(ms) -> str:
+    """A note for the input line when a periodic box plane passes closer to an inclusion's extreme than
+    the size function's box-gap floor (a sixth of a grid step): the wedge there will hold flat tets."""
+    if not ms.periodic or not ms.inclusions:
+        return ""
+    from ._periodic import plane_clearances
+
+    bounds = (np.array([inc.lower for inc in ms.inclusions]), np.array([inc.upper for inc in ms.inclusions]))
+    clear = min(float(c[0]) for c in plane_clearances(*bounds, ms.box, ms.grid_shape))
+    if clear >= min(ms.spacing) / 6:
+        return ""
+    return (f"; note: a box plane passes {clear:.2g} from an inclusion's extreme, under a sixth of a grid step: "
+            "expect flat tets there (roll='auto' / --roll auto on a file input moves the box planes)")
+
+
 def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Callable[[str], None] | None = None):
     """Periodic, conforming, labelled mesh of an RVE (tetrahedra in 3D, triangles in 2D).
 
@@ -183,7 +198,8 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
     rolled = (f"; rolled by {tuple(roll['samples'])} samples (the mesh's origin is the file's "
               f"{tuple(round(v, 6) for v in roll['offset'])}; box planes {roll['clearance_after']:.3g} from the "
               f"nearest inclusion extreme, {roll['clearance_before']:.3g} unrolled)") if roll else ""
-    t = stage("input", t, f"{ms.dim}D, {len(ms.inclusions)} inclusions, grid {tuple(ms.grid_shape)}{rolled}")
+    t = stage("input", t, f"{ms.dim}D, {len(ms.inclusions)} inclusions, grid {tuple(ms.grid_shape)}{rolled}"
+                          f"{_grazing_hint(ms) if config.roll is None else ''}")
 
     if ms.dim == 2 and config.backend != "conforming":
         raise ValueError(f"backend {config.backend!r} meshes 3D inputs only; hint: 2D inputs use the default backend")

@@ -90,7 +90,13 @@ def test_roll_auto_meshes_a_grid_sphere_grazing_a_box_plane_without_slivers(tmp_
     d = X - centre
     d -= np.round(d)
     np.save(tmp_path / "graze.npy", np.linalg.norm(d, axis=-1) - radius)
-    mesh = mesh_rve(tmp_path / "graze.npy", MeshConfig(roll="auto", seed=0))
+    lines = []  # as given, the input line warns (the size stage then stops: max_elements)
+    with pytest.raises(ValueError, match="max_elements"):
+        mesh_rve(tmp_path / "graze.npy", MeshConfig(max_elements=10), progress=lines.append)
+    assert "a box plane passes" in lines[0] and "--roll auto" in lines[0]
+    lines.clear()
+    mesh = mesh_rve(tmp_path / "graze.npy", MeshConfig(roll="auto", seed=0), progress=lines.append)
+    assert "rolled by" in lines[0] and "note:" not in lines[0]
     roll = mesh.metadata["roll"]
     assert roll["samples"][0] != 0 and roll["clearance_before"] < 1e-3 < 0.02 < roll["clearance_after"]
     assert roll["offset"][0] == pytest.approx(roll["samples"][0] / n)
