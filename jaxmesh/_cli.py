@@ -184,13 +184,9 @@ def _microstructure_info(ms) -> dict:
 
 def _box_plane_info(ms) -> dict:
     """How close the box planes come to an inclusion's extreme, as given and with --roll auto."""
-    import numpy as np
+    from ._pipeline import box_plane_clearances
 
-    from ._periodic import clearest_roll, plane_clearances
-
-    bounds = (np.array([inc.lower for inc in ms.inclusions]), np.array([inc.upper for inc in ms.inclusions]))
-    clear = plane_clearances(*bounds, ms.box, ms.grid_shape)
-    best = clearest_roll(*bounds, ms.box, ms.grid_shape)
+    clear, best = box_plane_clearances(ms)
     return {"box_plane_clearance": round(float(min(c[0] for c in clear)), 6),
             "with_roll_auto": f"{min(c[k] for c, k in zip(clear, best)):.6g} (samples {list(best)})"}
 

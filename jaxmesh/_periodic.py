@@ -121,4 +121,9 @@ def clearest_roll(lower, upper, box, shape) -> tuple[int, ...]:
     """Per axis, the grid sample k whose plane lies farthest from every inclusion bound
     (`plane_clearances`); 0 where the plane x_a = 0 is already as clear. Rolling the periodic
     grid by -k puts the box faces there."""
-    return tuple(0 if c[0] >= c.max() else int(np.argmax(c)) for c in plane_clearances(lower, upper, box, shape))
+    return clearest_planes(plane_clearances(lower, upper, box, shape))
+
+
+def clearest_planes(clearances: list[np.ndarray]) -> tuple[int, ...]:
+    """`clearest_roll` from the per-axis clearances of `plane_clearances`."""
+    return tuple(0 if c[0] >= c.max() else int(np.argmax(c)) for c in clearances)

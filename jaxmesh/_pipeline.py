@@ -121,11 +121,8 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None):
         ms = load_input(source, box=box, periodic=periodic)
         if roll is None:
             return ms, {}
-        from ._periodic import clearest_roll, plane_clearances
-
-        bounds = (np.array([inc.lower for inc in ms.inclusions]), np.array([inc.upper for inc in ms.inclusions]))
-        clear = plane_clearances(*bounds, ms.box, ms.grid_shape)
-        samples = clearest_roll(*bounds, ms.box, ms.grid_shape) if roll == "auto" else tuple(roll)
+        clear, best = box_plane_clearances(ms)
+        samples = best if roll == "auto" else tuple(roll)
         if len(samples) != ms.dim:
             raise ValueError(f"MeshConfig.roll: expected {ms.dim} integers for this {ms.dim}D input, got {samples}")
         samples = tuple(k % n for k, n in zip(samples, ms.grid_shape))
@@ -142,15 +139,23 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None):
     )
 
 
+def box_plane_clearances(ms) -> tuple[list[np.ndarray], tuple[int, ...]]:
+    """Per axis, the distance from each grid plane to the nearest inclusion extreme
+    (`_periodic.plane_clearances`), and the clearest planes (`_periodic.clearest_planes`)."""
+    from ._periodic import clearest_planes, plane_clearances
+
+    lower = np.array([inc.lower for inc in ms.inclusions], dtype=float).reshape(-1, ms.dim)
+    upper = np.array([inc.upper for inc in ms.inclusions], dtype=float).reshape(-1, ms.dim)
+    clear = plane_clearances(lower, upper, ms.box, ms.grid_shape)
+    return clear, clearest_planes(clear)
+
+
 def _grazing_hint(ms) -> str:
     """A note for the input line when a periodic box plane passes closer to an inclusion's extreme than
     the size function's box-gap floor (a sixth of a grid step): the wedge there will hold flat tets."""
     if not ms.periodic or not ms.inclusions:
         return ""
-    from ._periodic import plane_clearances
-
-    bounds = (np.array([inc.lower for inc in ms.inclusions]), np.array([inc.upper for inc in ms.inclusions]))
-    clear = min(float(c[0]) for c in plane_clearances(*bounds, ms.box, ms.grid_shape))
+    clear = min(float(c[0]) for c in box_plane_clearances(ms)[0])
     if clear >= min(ms.spacing) / 6:
         return ""
     return (f"; note: a box plane passes {clear:.2g} from an inclusion's extreme, under a sixth of a grid step: "
