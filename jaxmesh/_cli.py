@@ -251,15 +251,16 @@ def _size_kwargs(args: argparse.Namespace) -> dict:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
+    from ._pipeline import _as_microstructure
     from ._validate import validate
-    from .io._read import load_input
     from .io._read_mesh import read_mesh
 
     t0 = time.perf_counter()
     mesh = read_mesh(args.mesh, box=_box_arg(args.box), periodic=not args.no_periodic)
     ms = None
     if args.geometry:
-        ms = load_input(args.geometry, box=_box_arg(args.box) or tuple(mesh.box), periodic=mesh.periodic)
+        ms, _ = _as_microstructure(args.geometry, box=_box_arg(args.box) or tuple(mesh.box), periodic=mesh.periodic,
+                                   roll=_roll_arg(args.roll))
     report = validate(mesh, ms)
     print(report.summary())
     _progress("validate", ("valid" if report.ok else "INVALID") + f": {args.mesh}", t0)
@@ -342,6 +343,8 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--box", type=float, nargs="+", default=None)
     v.add_argument("--report", default=None, help="JSON report path")
     v.add_argument("--no-periodic", action="store_true", help="a plain box mesh: no periodic node pairs to check")
+    v.add_argument("--roll", nargs="+", default=None, metavar="auto|K",
+                   help="the --roll the mesh was made with (the geometry is read rolled the same way)")
     v.set_defaults(func=_cmd_validate)
     return parser
 

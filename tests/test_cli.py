@@ -162,3 +162,17 @@ def test_mesh_refuses_a_bad_roll_before_meshing(tmp_path, capsys, roll, extra, m
     np.save(path, np.ones((16, 16, 16)))
     assert main(["mesh", str(path), "-o", str(out), "--roll", *roll, *extra]) == 2
     assert message in capsys.readouterr().err and not out.exists()
+
+
+def test_mesh_and_validate_with_roll_auto(tmp_path, capsys):
+    """A rolled mesh conforms to the geometry read with the same --roll, and not to the file's frame."""
+    n, radius = 24, 0.25
+    x = np.arange(n) / n
+    d = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1) - np.array([radius + 0.004, 0.5, 0.45])
+    d -= np.round(d)
+    phi, out = tmp_path / "phi.npy", tmp_path / "m.vtu"
+    np.save(phi, np.linalg.norm(d, axis=-1) - radius)
+    assert main(["mesh", str(phi), "-o", str(out), "--h", "0.1", "--roll", "auto"]) == 0
+    assert re.search(r"rolled by \(\d+, \d+, \d+\) samples", capsys.readouterr().out)
+    assert main(["validate", str(out), "--geometry", str(phi), "--roll", "auto"]) == 0
+    assert main(["validate", str(out), "--geometry", str(phi)]) == 1
