@@ -88,6 +88,9 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         f"{len(specs)} {shape}s, volume fraction {volume / box_volume:.4f}, grid {grid_shape} -> {args.output}",
         t0,
     )
+    if args.n is not None and args.volume_fraction and volume / box_volume < args.volume_fraction - 0.005:
+        print(f"    note: --n {args.n} was reached first (volume fraction {volume / box_volume:.4f}, asked "
+              f"{args.volume_fraction}): drop --n, or raise it or --radius, to reach the fraction", flush=True)
     return 0
 
 

@@ -93,6 +93,14 @@ def test_generate_keeps_inclusions_clear_of_the_box(tmp_path, box_gap):
     assert dist.min() >= (0.03 if box_gap is None else 0.08) - 1e-9
 
 
+def test_generate_says_when_the_count_stops_it_short_of_the_fraction(tmp_path, capsys):
+    args = ["generate", str(tmp_path / "g.npz"), "--dim", "2", "--radius", "0.05", "--grid", "32", "--seed", "1"]
+    assert main([*args, "--n", "3", "--volume-fraction", "0.3"]) == 0
+    assert "note: --n 3 was reached first" in capsys.readouterr().out
+    assert main([*args, "--n", "3"]) == 0
+    assert "note:" not in capsys.readouterr().out
+
+
 def test_compilation_cache_folder_from_the_environment(monkeypatch, tmp_path):
     from jaxmesh._compile_cache import CACHE_ENV, default_cache_dir
 
