@@ -334,7 +334,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="periodic grid inputs: mesh the grid rolled so that sample K_a lies at x_a = 0; 'auto' "
                         "takes the planes farthest from the inclusions' extremes (box faces grazing an inclusion "
                         "leave thin wedges of bad elements). The mesh is in the rolled frame; the report's "
-                        "metadata.roll gives the offset")
+                        "metadata.roll gives the offset. Without --roll, a periodic file input whose meshing fails "
+                        "is meshed once more with 'auto' (--roll 0 0 0: never)")
     m.add_argument("--seed", type=int, default=0)
     m.add_argument("--report", default=None, help="JSON report path")
     m.add_argument("--plot", default=None, help="PNG path: mesh coloured by phase + quality histogram")

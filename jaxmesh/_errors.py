@@ -11,5 +11,6 @@ class MeshingError(RuntimeError):
     def __init__(self, stage: str, message: str, inclusion: int | None = None):
         self.stage = stage
         self.inclusion = inclusion
+        self.message = message
         where = f"stage '{stage}'" + (f", inclusion {inclusion}" if inclusion is not None else "")
         super().__init__(f"{where}: {message}")

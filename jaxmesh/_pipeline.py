@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._errors import MeshingError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,7 +39,9 @@ class MeshConfig:
         max_elements: refuse (ValueError, before the surfaces) a 3D conforming mesh whose size function
             predicts more tetrahedra than this; None: no limit. The estimate is
             _TETS_PER_PREDICTED * c * integral of h^-3 (`cellwise_element_count`).
-        roll: None (the box as given), "auto" or d integers: mesh a periodic file input rolled so
+        roll: None (the box as given; when that fails with a MeshingError, a periodic file input is
+            meshed once more with "auto" and metadata['roll']['after_failure'] keeps the first error),
+            "auto" or d integers (zeros: as given, no second try): mesh a periodic file input rolled so
             that grid sample roll[a] lies at x_a = 0. "auto" takes, per axis, the grid plane farthest
             from every inclusion's extent bounds (`jaxmesh.clearest_roll`): box faces that graze an
             inclusion leave wedges thinner than the elements. The mesh is in the rolled frame;
@@ -183,6 +186,39 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
     """
     config = MeshConfig() if config is None else config
     say = progress or (lambda line: None)
+    try:
+        return _mesh_rve(source, config, box, say)
+    except MeshingError as failure:
+        rolled = _retry_config(source, config, box)
+        if rolled is None:
+            raise
+        say(f"[jaxmesh] retry      {failure}; meshing again with the box planes moved off the inclusions "
+            "(roll='auto'; validate with --roll auto)")
+        try:
+            mesh = _mesh_rve(source, rolled, box, say)
+        except MeshingError as second:
+            raise MeshingError(failure.stage, f"{failure.message}; meshed again with roll='auto', "
+                               f"it failed too: {second}", failure.inclusion) from failure
+        mesh.metadata["roll"]["after_failure"] = str(failure)
+        return mesh
+
+
+def _retry_config(source, config: MeshConfig, box) -> MeshConfig | None:
+    """The configuration of a second try after a MeshingError: roll='auto' when the input is a periodic
+    file meshed in its own frame (roll None; an explicit roll, zeros included, is kept) and rolling
+    moves its box planes farther from the inclusions' extremes; else None."""
+    if config.roll is not None or not config.periodic or config.backend != "conforming" \
+            or not isinstance(source, (str, Path)):
+        return None
+    from .io._read import load_input
+
+    clear, best = box_plane_clearances(load_input(source, box=box, periodic=True))
+    if min(c[k] for c, k in zip(clear, best)) <= min(c[0] for c in clear):
+        return None
+    return dataclasses.replace(config, roll="auto")
+
+
+def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
     _warn_if_float32()
     t_start = time.perf_counter()
     timings: dict[str, float] = {}

@@ -107,3 +107,60 @@ def test_roll_auto_meshes_a_grid_sphere_grazing_a_box_plane_without_slivers(tmp_
     with pytest.raises(ValueError, match="input file"):
         spec = InclusionSpec("sphere", np.array([0.5, 0.5, 0.5]), np.full(3, 0.2), np.eye(3))
         mesh_rve(microstructure_from_specs([spec], (1.0, 1.0, 1.0), (n,) * 3), MeshConfig(roll="auto"))
+
+
+def _grazing_sphere_file(path, n=24, radius=0.2):
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1)
+    d = X - np.array([radius - 2e-6, 0.47, 0.55])
+    d -= np.round(d)
+    np.save(path, np.linalg.norm(d, axis=-1) - radius)
+    return path
+
+
+def test_a_failure_in_the_files_frame_is_meshed_again_rolled(tmp_path, monkeypatch):
+    """roll None: a MeshingError in the file's own frame gets one more try with roll 'auto' (a valid
+    mesh whose metadata keeps the first error); an explicit roll, zeros included, gets none."""
+    from jaxmesh import MeshingError, _pipeline
+
+    path = _grazing_sphere_file(tmp_path / "graze.npy")
+    real = _pipeline._mesh_3d
+    calls = []
+
+    def fails_unrolled(ms, config, stage, t):
+        calls.append(config.roll)
+        if config.roll is None or config.roll == (0, 0, 0):
+            raise MeshingError("surfaces", "a cap thinner than its elements", inclusion=0)
+        return real(ms, config, stage, t)
+
+    monkeypatch.setattr(_pipeline, "_mesh_3d", fails_unrolled)
+    lines = []
+    mesh = mesh_rve(path, MeshConfig(h=0.08, seed=0), progress=lines.append)
+    assert calls == [None, "auto"]
+    assert any("retry" in line and "roll='auto'" in line for line in lines)
+    roll = mesh.metadata["roll"]
+    assert roll["samples"][0] != 0 and "a cap thinner than its elements" in roll["after_failure"]
+    assert mesh.metadata["validation"]["ok"], mesh.metadata["validation"]
+    assert mesh.metadata["parameters"]["roll"] == "auto"
+    with pytest.raises(MeshingError, match="thinner"):
+        mesh_rve(path, MeshConfig(h=0.08, roll=(0, 0, 0)))
+
+
+def test_a_failure_that_rolling_cannot_help_is_raised_as_it_is(tmp_path, monkeypatch):
+    from jaxmesh import MeshingError, _pipeline
+
+    def always_fails(ms, config, stage, t):
+        raise MeshingError("volume", f"recovery stopped (roll {config.roll})")
+
+    monkeypatch.setattr(_pipeline, "_mesh_3d", always_fails)
+    path = _grazing_sphere_file(tmp_path / "graze.npy")
+    with pytest.raises(MeshingError, match=r"roll None.*meshed again with roll='auto', it failed too.*roll auto"):
+        mesh_rve(path, MeshConfig(h=0.08))
+    x = np.arange(24) / 24
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1)
+    np.save(tmp_path / "clear.npy", np.linalg.norm(X - 0.5, axis=-1) - 0.2)  # box planes already clearest
+    with pytest.raises(MeshingError, match=r"^stage 'volume': recovery stopped \(roll None\)$"):
+        mesh_rve(tmp_path / "clear.npy", MeshConfig(h=0.08))
+    with pytest.raises(MeshingError, match=r"\(roll None\)$"):  # a Microstructure has no file to roll
+        spec = InclusionSpec("sphere", np.array([0.2, 0.5, 0.5]), np.full(3, 0.2), np.eye(3))
+        mesh_rve(microstructure_from_specs([spec], (1.0, 1.0, 1.0), (24,) * 3), MeshConfig(h=0.08))
