@@ -50,6 +50,10 @@ def test_npz_keys_box_and_periodic(tmp_path):
     assert load_input(tmp_path / "b.npz", periodic=True).periodic
     np.savez(tmp_path / "c.npz", labels=(phi < 0).astype(np.int32))
     assert load_input(tmp_path / "c.npz").box == (1.0, 1.0)
+    np.savez(tmp_path / "d.npz", phi, box=np.array([2.0, 2.0]))  # unnamed: 'arr_0', read as a .npy
+    _same(load_input(tmp_path / "d.npz"), Microstructure.from_levelset(phi, box=(2.0, 2.0)))
+    np.savez(tmp_path / "e.npz", (phi < 0).astype(np.int32))
+    assert load_input(tmp_path / "e.npz").inclusions[0].description["label"] == 1
 
 
 @pytest.mark.skipif(importlib.util.find_spec("tifffile") is None, reason="needs tifffile")

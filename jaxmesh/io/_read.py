@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-_FORMATS = ".npy (level set or labels), .npz (keys phi or labels, optional box, periodic), .tif/.tiff, .vti"
+_FORMATS = ".npy (level set or labels), .npz (keys phi or labels, or one unnamed array; optional box, periodic), .tif/.tiff, .vti"
 
 
 def _fail(path, what: str, hint: str):
@@ -58,13 +58,17 @@ def _read_npz(path: Path, box, periodic, roll=None):
             data = {key: npz[key] for key in npz.files}
     except Exception as err:
         _fail(path, f"could not read it as .npz ({err})", "write it with numpy.savez")
-    if "phi" not in data and "labels" not in data:
+    grids = [key for key in data if key not in ("box", "periodic")]
+    single = grids == ["arr_0"]  # np.savez(path, phi): one unnamed grid
+    if "phi" not in data and "labels" not in data and not single:
         _fail(path, f"expected a key 'phi' (level set) or 'labels' (labelled image), got keys {sorted(data)}",
               "np.savez(path, phi=phi, box=box) or np.savez(path, labels=labels)")
     if box is None and "box" in data:
         box = tuple(np.asarray(data["box"], dtype=float).ravel().tolist())
     if periodic is None:
         periodic = bool(np.asarray(data["periodic"]).item()) if "periodic" in data else True
+    if single:  # read as a .npy
+        return _build(_rolled(np.asarray(data["arr_0"]), roll, periodic, path), box, periodic, path)
     if roll is not None:
         key = "phi" if "phi" in data else "labels"
         shape = np.shape(data[key])
@@ -123,7 +127,7 @@ def load_input(path, box=None, periodic: bool | None = None, roll=None):
 
     Args:
         path: .npy (float: level set; integer/bool: labels), .npz (key 'phi' or 'labels',
-            optional 'box' and 'periodic'; analytic inclusions written by jaxmesh.generate are
+            optional 'box' and 'periodic'; a single unnamed grid, 'arr_0', is read as a .npy; analytic inclusions written by jaxmesh.generate are
             rebuilt exactly when that module is available), .tif/.tiff (integer: labels, else
             level set; array axis 0 = x), .vti (pyvista; point data 'phi' or 'labels' or the first).
         box: (d,) cell lengths; overrides the file's; default from the file, else the unit cube.
