@@ -153,6 +153,16 @@ def box_plane_clearances(ms) -> tuple[list[np.ndarray], tuple[int, ...]]:
     return clear, clearest_planes(clear)
 
 
+def _inside_out_hint(ms) -> str:
+    """A note for the input line when the inclusions fill most of the box: a field negative in the
+    matrix (the opposite sign convention) reads as one inclusion around the real ones."""
+    fraction = ms.volume_fraction() if ms.inclusions else 0.0
+    if fraction <= 0.7:
+        return ""
+    return (f"; note: the inclusions fill {fraction:.0%} of the box; jaxmesh takes phi < 0 (labels > 0) inside "
+            "them: if your field is negative in the matrix, pass -phi")
+
+
 def _grazing_hint(ms) -> str:
     """A note for the input line when a periodic box plane passes closer to an inclusion's extreme than
     the size function's box-gap floor (a sixth of a grid step): the wedge there will hold flat tets."""
@@ -210,9 +220,15 @@ def _retry_config(source, config: MeshConfig, box) -> MeshConfig | None:
     if config.roll is not None or not config.periodic or config.backend != "conforming" \
             or not isinstance(source, (str, Path)):
         return None
+    from ._surface import check_clear_of_images
     from .io._read import load_input
 
-    clear, best = box_plane_clearances(load_input(source, box=box, periodic=True))
+    ms = load_input(source, box=box, periodic=True)
+    try:
+        check_clear_of_images(ms.inclusions, ms.box)
+    except MeshingError:  # an inclusion meets its own image: no box frame can mesh it
+        return None
+    clear, best = box_plane_clearances(ms)
     if min(c[k] for c, k in zip(clear, best)) <= min(c[0] for c in clear):
         return None
     return dataclasses.replace(config, roll="auto")
@@ -240,7 +256,7 @@ def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
               f"{tuple(round(v, 6) for v in roll['offset'])}; box planes {roll['clearance_after']:.3g} from the "
               f"nearest inclusion extreme, {roll['clearance_before']:.3g} unrolled)") if roll else ""
     t = stage("input", t, f"{ms.dim}D, {len(ms.inclusions)} inclusions, grid {tuple(ms.grid_shape)}{rolled}"
-                          f"{_grazing_hint(ms) if config.roll is None else ''}")
+                          f"{_grazing_hint(ms) if config.roll is None else ''}{_inside_out_hint(ms)}")
 
     if ms.dim == 2 and config.backend != "conforming":
         raise ValueError(f"backend {config.backend!r} meshes 3D inputs only; hint: 2D inputs use the default backend")

@@ -162,6 +162,33 @@ def test_an_inclusion_reaching_its_own_image_is_refused_before_the_size_function
     assert any("] input" in s for s in stages) and not any("] size" in s for s in stages)
 
 
+def test_a_field_negative_in_the_matrix_is_refused_with_a_sign_hint_and_no_retry(tmp_path):
+    """Three spheres given with the opposite sign: the 'inclusion' is the matrix around them. Its
+    bounds (from the interface crossings) stop short of the box, but it has samples in every grid
+    plane: it meets its own image, refused before the size function; the input line says the
+    inclusions fill most of the box and names the sign convention; a second, rolled try cannot help."""
+    from jaxmesh._errors import MeshingError
+
+    x = np.arange(24) / 24
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1)
+    phi = np.full((24,) * 3, np.inf)
+    for centre in ([0.3, 0.4, 0.5], [0.75, 0.7, 0.2], [0.05, 0.9, 0.95]):
+        d = X - np.array(centre)
+        d -= np.round(d)
+        phi = np.minimum(phi, np.linalg.norm(d, axis=-1) - 0.17)
+    np.save(tmp_path / "inside_out.npy", -phi)
+    lines = []
+    with pytest.raises(MeshingError, match="own periodic image"):
+        mesh_rve(tmp_path / "inside_out.npy", MeshConfig(iis=0.1), progress=lines.append)
+    assert "fill 9" in lines[0] and "pass -phi" in lines[0]
+    assert not any("retry" in line for line in lines) and not any("] size" in line for line in lines)
+    with_sign = []
+    np.save(tmp_path / "right.npy", phi)
+    with pytest.raises(ValueError, match="max_elements"):
+        mesh_rve(tmp_path / "right.npy", MeshConfig(iis=0.1, max_elements=10), progress=with_sign.append)
+    assert "note" not in with_sign[0]
+
+
 def test_a_mesh_larger_than_max_elements_is_refused_before_the_surfaces():
     """The size function's estimate (2.5 c * integral of h^-3) is checked against max_elements: a
     clear error before any surface is meshed, for the size function and for a uniform h."""

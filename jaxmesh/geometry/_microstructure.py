@@ -555,6 +555,8 @@ class Microstructure:
             if not periodic:  # cut by the domain boundary: the bounds reach the box
                 lower = np.where(starts[c - 1] == 0, 0.0, lower)
                 upper = np.where(starts[c - 1] + lengths[c - 1] == shape, np.asarray(box, float), upper)
+            else:  # samples in every grid plane along an axis: it meets its own image (the mesher refuses it)
+                upper = np.where(lengths[c - 1] == shape, lower + np.asarray(box, float), upper)
             centre, half = zip(*(comp.core_geometry(win, k, spacing, W.shape) for k in range(len(shape))))
             data = _pad_to_bucket(bspline_coefficients(W) if order == "cubic" else jnp.asarray(W))
             args = [jnp.asarray(a, dtype=data.dtype) for a in
