@@ -202,8 +202,11 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
         rolled = _retry_config(source, config, box)
         if rolled is None:
             raise
-        say(f"[jaxmesh] retry      {failure}; meshing again with the box planes moved off the inclusions "
-            "(roll='auto'; validate with --roll auto)")
+        line = (f"{failure}; meshing again with the box planes moved off the inclusions (roll='auto'; the mesh "
+                "is in the rolled frame, metadata['roll'] gives the offset; validate with --roll auto)")
+        say(f"[jaxmesh] retry      {line}")
+        if progress is None:  # the frame changes: say so where no progress line shows it
+            warnings.warn(line, stacklevel=2)
         try:
             mesh = _mesh_rve(source, rolled, box, say)
         except MeshingError as second:

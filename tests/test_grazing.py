@@ -144,6 +144,8 @@ def test_a_failure_in_the_files_frame_is_meshed_again_rolled(tmp_path, monkeypat
     assert mesh.metadata["parameters"]["roll"] == "auto"
     with pytest.raises(MeshingError, match="thinner"):
         mesh_rve(path, MeshConfig(h=0.08, roll=(0, 0, 0)))
+    with pytest.warns(UserWarning, match="rolled frame"):  # no progress callback: a warning says it
+        mesh_rve(path, MeshConfig(h=0.08, seed=0, validate=False))
 
 
 def test_a_failure_that_rolling_cannot_help_is_raised_as_it_is(tmp_path, monkeypatch):
