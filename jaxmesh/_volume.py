@@ -99,6 +99,23 @@ def _bcc(box: np.ndarray, a: float) -> np.ndarray:
     return np.concatenate([g, g + 0.5 * step])
 
 
+def _bcc_where(box: np.ndarray, a: float, h_fn: Callable, lo: float, hi: float, chunk: int = 2**20) -> np.ndarray:
+    """The nodes of `_bcc(box, a)` where lo <= h < hi, in the same order, built and sized in slabs
+    along x: the finest octave's full lattice can hold ~1e8 nodes (GBs) for a few thousand kept."""
+    n = np.maximum(1, np.round(box / a)).astype(int)
+    step = box / n
+    axes = [(np.arange(k) + 0.25) * s for k, s in zip(n, step)]
+    rows = max(1, chunk // int(n[1] * n[2]))
+    kept = []
+    for shift in (0.0, 0.5):  # cube corners, then centres (as `_bcc`)
+        for i in range(0, n[0], rows):
+            g = np.stack(np.meshgrid(axes[0][i : i + rows], axes[1], axes[2], indexing="ij"), -1).reshape(-1, 3)
+            g = g + shift * step if shift else g
+            h = _check_h(h_fn, g)
+            kept.append(g[(h >= lo) & (h < hi)])
+    return np.concatenate(kept)
+
+
 def interior_nodes(surface: SurfaceMesh, h_fn: Callable, config: VolumeConfig = VolumeConfig()) -> np.ndarray:
     """Interior nodes: BCC lattices at h (one level per octave of h), away from the surface, jittered.
 
@@ -116,15 +133,8 @@ def interior_nodes(surface: SurfaceMesh, h_fn: Callable, config: VolumeConfig = 
     while levels[-1] > 1.05 * h_lo and len(levels) < 8:
         levels.append(levels[-1] / 2)
     chunks = []
-    for k, a in enumerate(levels):  # keep lattice nodes where a <= h < 2a (coarsest: h >= a)
-        p = _bcc(box, a)
-        h = _check_h(h_fn, p)
-        keep = np.ones(len(p), bool)
-        if k:
-            keep &= h < 2 * a
-        if k < len(levels) - 1:
-            keep &= h >= a
-        chunks.append((p[keep], a))
+    for k, a in enumerate(levels):  # keep lattice nodes where a <= h < 2a (coarsest: h >= a; finest: h < 2a)
+        chunks.append((_bcc_where(box, a, h_fn, a if k < len(levels) - 1 else -np.inf, 2 * a if k else np.inf), a))
     pts = np.concatenate([c for c, _ in chunks]) if chunks else np.zeros((0, 3))
     if len(levels) > 1:  # level transitions: drop nodes too close to an already accepted one
         h = _check_h(h_fn, pts)
