@@ -104,5 +104,6 @@ def main() -> None:
         count = "" if slide is None else f" ({int(slide.mask.sum()):,})"
         print(f"| {sliding}{count} | {threshold} | {seconds:.1f} | {report(p, c, surface.n_points)}", flush=True)
 
+
 if __name__ == "__main__":
     main()

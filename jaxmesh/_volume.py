@@ -90,11 +90,17 @@ def _check_h(h_fn, points: np.ndarray) -> np.ndarray:
     return h
 
 
-def _bcc(box: np.ndarray, a: float) -> np.ndarray:
-    """Body-centred cubic lattice of cube side ~a fitted to the box, shifted off the box planes."""
+def _bcc_axes(box: np.ndarray, a: float) -> tuple[list[np.ndarray], np.ndarray]:
+    """Cube-corner coordinates per axis of the BCC lattice of cube side ~a fitted to the box (shifted
+    off the box planes), and the cube sides; the cube centres are the corners + step / 2."""
     n = np.maximum(1, np.round(box / a)).astype(int)
     step = box / n
-    axes = [(np.arange(k) + 0.25) * s for k, s in zip(n, step)]
+    return [(np.arange(k) + 0.25) * s for k, s in zip(n, step)], step
+
+
+def _bcc(box: np.ndarray, a: float) -> np.ndarray:
+    """Body-centred cubic lattice of cube side ~a fitted to the box: cube corners, then centres."""
+    axes, step = _bcc_axes(box, a)
     g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     return np.concatenate([g, g + 0.5 * step])
 
@@ -102,13 +108,11 @@ def _bcc(box: np.ndarray, a: float) -> np.ndarray:
 def _bcc_where(box: np.ndarray, a: float, h_fn: Callable, lo: float, hi: float, chunk: int = 2**20) -> np.ndarray:
     """The nodes of `_bcc(box, a)` where lo <= h < hi, in the same order, built and sized in slabs
     along x: the finest octave's full lattice can hold ~1e8 nodes (GBs) for a few thousand kept."""
-    n = np.maximum(1, np.round(box / a)).astype(int)
-    step = box / n
-    axes = [(np.arange(k) + 0.25) * s for k, s in zip(n, step)]
-    rows = max(1, chunk // int(n[1] * n[2]))
+    axes, step = _bcc_axes(box, a)
+    rows = max(1, chunk // (len(axes[1]) * len(axes[2])))
     kept = []
     for shift in (0.0, 0.5):  # cube corners, then centres (as `_bcc`)
-        for i in range(0, n[0], rows):
+        for i in range(0, len(axes[0]), rows):
             g = np.stack(np.meshgrid(axes[0][i : i + rows], axes[1], axes[2], indexing="ij"), -1).reshape(-1, 3)
             g = g + shift * step if shift else g
             h = _check_h(h_fn, g)

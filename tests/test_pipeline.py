@@ -182,8 +182,8 @@ def test_a_field_negative_in_the_matrix_is_refused_with_a_sign_hint_and_no_retry
         mesh_rve(tmp_path / "inside_out.npy", MeshConfig(iis=0.1), progress=lines.append)
     assert "fill 9" in lines[0] and "pass -phi" in lines[0]
     assert not any("retry" in line for line in lines) and not any("] size" in line for line in lines)
-    with_sign = []
     np.save(tmp_path / "right.npy", phi)
+    with_sign = []
     with pytest.raises(ValueError, match="max_elements"):
         mesh_rve(tmp_path / "right.npy", MeshConfig(iis=0.1, max_elements=10), progress=with_sign.append)
     assert "note" not in with_sign[0]

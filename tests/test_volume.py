@@ -573,8 +573,9 @@ def test_projection_undoes_a_move_that_inverts_a_tet_and_keeps_a_small_one(spher
 
 @pytest.mark.parametrize("chunk", [7, 100, 2**20])
 def test_bcc_lattice_in_slabs_is_the_full_lattice_masked(chunk):
-    """`_bcc_where` builds the octave lattice in slabs along x (the finest one held 23M nodes, 7.5 GB,
-    for 21k kept on a 64^3 RVE): the same nodes in the same order as masking the full lattice."""
+    """`_bcc_where` builds the octave lattice in slabs along x (the finest octave's full lattice can
+    hold tens of millions of nodes for a few thousand kept): the same nodes in the same order as
+    masking the full lattice, whatever the slab size."""
     from jaxmesh._volume import _bcc, _bcc_where
 
     box = np.array([1.0, 0.7, 0.45])
