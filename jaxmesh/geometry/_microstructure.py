@@ -81,6 +81,29 @@ def _map_kernel(func, params, box, window_box, batch):
     return jax.lax.map(lambda a: func(*a[0], box, window_box, a[1]), (params, batch))
 
 
+def _analytic_key(phi_fn):
+    """(func, box or None, parameter shapes) of an analytic Partial level set (periodized or not),
+    None for anything else: inclusions with equal keys are evaluated in one compiled call."""
+    box = phi_fn.box if isinstance(phi_fn, _Periodized) else None
+    f = phi_fn.fn if isinstance(phi_fn, _Periodized) else phi_fn
+    if not isinstance(f, jax.tree_util.Partial) or f.func in _KERNEL_SET or f.keywords:
+        return None
+    if not f.args or not all(isinstance(a, (jax.Array, np.ndarray)) for a in f.args):
+        return None
+    return f.func, box, tuple((np.shape(a), jnp.result_type(a)) for a in f.args)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _gather_kernel(func, box, params, owner, points):
+    """Point k at the level set of inclusion owner[k] of a stack (M, d) -> (M,): one pass over the
+    points with each point's own parameters, so many small inclusions cost one dispatch."""
+    def one(x, *args):
+        f = jax.tree_util.Partial(func, *args)
+        return (_Periodized(f, box) if box is not None else f)(x[None])[0]
+
+    return jax.vmap(one)(points, *(p[owner] for p in params))
+
+
 class _Periodized(eqx.Module):
     """phi(x) = min over the 3^d image shifts of f(wrap(x) + shift): a periodic level set from an
     SDF defined on R^d (wrap first, so points far outside the box are handled too).
@@ -297,29 +320,39 @@ class Microstructure:
         return ids
 
     def _groups(self):
-        """Window-based inclusions stacked by (kernel, window shape): [(kernel, params, box, window_box,
-        member indices)], and the other inclusions' indices (cached)."""
+        """Inclusions stacked for evaluation (cached): window-based ones by (kernel, window shape)
+        as [(kernel, params, box, window_box, member indices)], analytic Partial ones by (function,
+        box, parameter shapes) as [(function, box, params, member indices)], and the others' indices."""
         if self._stacked is None:
-            groups, others = {}, []
+            windows, analytic, others = {}, {}, []
             for i, inc in enumerate(self.inclusions):
                 f = inc.phi_fn
                 if isinstance(f, jax.tree_util.Partial) and f.func in _KERNEL_SET:
-                    groups.setdefault((f.func, f.args[0].shape), []).append(i)
+                    windows.setdefault((f.func, f.args[0].shape), []).append(i)
+                elif (key := _analytic_key(f)) is not None:
+                    analytic.setdefault(key, []).append(i)
                 else:
                     others.append(i)
             stacks = []
-            for (func, _), members in groups.items():
+            for (func, _), members in windows.items():
                 fs = [self.inclusions[i].phi_fn for i in members]
                 params = tuple(jnp.stack([f.args[k] for f in fs]) for k in range(4))
                 stacks.append((func, params, fs[0].args[4], fs[0].args[5], np.array(members)))
-            self._stacked = (stacks, others)
+            gathers = []
+            for (func, box, _), members in analytic.items():
+                fs = [self.inclusions[i].phi_fn for i in members]
+                fs = [f.fn if isinstance(f, _Periodized) else f for f in fs]
+                params = tuple(jnp.stack([jnp.asarray(f.args[k]) for f in fs]) for k in range(len(fs[0].args)))
+                gathers.append((func, box, params, np.array(members)))
+            self._stacked = (stacks, gathers, others)
         return self._stacked
 
-    def _evaluate_near(self, pts: np.ndarray, margin: float):
+    def _evaluate_near(self, pts: np.ndarray, margin: float, chunk: int = 2**16):
         """Yield (inclusion index, selected point indices, phi values) for every inclusion at the
-        points within margin of its bounds; equal windows are evaluated in one compiled call."""
+        points within margin of its bounds; equal windows, and analytic inclusions of one kind, are
+        evaluated in one compiled call."""
         near = self._near_bounds(pts, margin)
-        stacks, others = self._groups()
+        stacks, gathers, others = self._groups()
         for func, params, box, wbox, members in stacks:
             counts = [len(near[i]) for i in members]
             if max(counts) == 0:
@@ -331,6 +364,23 @@ class Microstructure:
             vals = np.asarray(_map_kernel(func, params, box, wbox, batch))
             for j, i in enumerate(members):
                 yield i, near[i], vals[j, : counts[j]]
+        for func, box, params, members in gathers:
+            counts = np.array([len(near[i]) for i in members])
+            if counts.sum() == 0:
+                continue
+            sel = np.concatenate([near[i] for i in members])
+            owner = np.repeat(np.arange(len(members)), counts)
+            vals = np.empty(len(sel))
+            for start in range(0, len(sel), chunk):
+                k = min(chunk, len(sel) - start)
+                size = max(64, 1 << (k - 1).bit_length())
+                p, o = np.zeros((size, self.dim)), np.zeros(size, np.int64)
+                p[:k], o[:k] = pts[sel[start : start + k]], owner[start : start + k]
+                p[k:] = p[0]  # padding: any point inside the box
+                vals[start : start + k] = np.asarray(_gather_kernel(func, box, params, o, p))[:k]
+            ends = np.cumsum(counts)
+            for j, i in enumerate(members):
+                yield i, near[i], vals[ends[j] - counts[j] : ends[j]]
         for i in others:
             if len(near[i]):
                 yield i, near[i], evaluate(self.inclusions[i].phi_fn, pts[near[i]])
@@ -341,8 +391,9 @@ class Microstructure:
         Window-based inclusions of equal window shape are stacked and folded with lax.scan, so the
         cost is N interpolations per point at the memory of one. Jit-able, differentiable.
         """
-        stacks, others = self._groups()
-        other_fns = [self.inclusions[i].phi_fn for i in others]
+        stacks, gathers, others = self._groups()
+        unstacked = sorted(others + [int(i) for *_, members in gathers for i in members])
+        other_fns = [self.inclusions[i].phi_fn for i in unstacked]
 
         def dn1_fn(points):
             points = jnp.asarray(points)
