@@ -286,11 +286,25 @@ def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
         mesh.metadata["validation"] = report.to_dict()
         t = stage("validate", t, "valid" if report.ok else "INVALID: " + ", ".join(report.failed))
     timings["total"] = time.perf_counter() - t_start
+    mesh.metadata["inclusions"] = inclusion_table(ms, mesh)
     mesh.metadata["timings"] = timings
     mesh.metadata["parameters"] = dataclasses.asdict(config)
     if roll:
         mesh.metadata["roll"] = roll
     return mesh
+
+
+def inclusion_table(ms, mesh) -> list[dict]:
+    """Per inclusion id: its description (a labelled image's original label, an analytic shape's
+    kind / centre / axes), its unwrapped bounds, the analytic volume when known, and the volume of
+    its cells in the mesh, so that ids map back to the input."""
+    from ._quality import signed_volumes
+
+    meshed = np.bincount(mesh.inclusion_id, np.abs(signed_volumes(mesh.points, mesh.cells)),
+                         minlength=len(ms.inclusions) + 1)
+    return [{"id": inc.id, **inc.description, "lower": np.asarray(inc.lower, float).tolist(),
+             "upper": np.asarray(inc.upper, float).tolist(), "volume": inc.volume,
+             "meshed_volume": float(meshed[inc.id])} for inc in ms.inclusions]
 
 
 def _warn_if_float32() -> None:

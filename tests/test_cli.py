@@ -40,6 +40,9 @@ def test_mesh_3d_sphere(tmp_path, capsys):
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["metadata"]["validation"]["ok"] is True
     assert report["quality"]["n_cells"] > 100
+    (sphere,) = report["metadata"]["inclusions"]
+    assert sphere["id"] == 1 and sphere["kind"] == "levelset"
+    assert sphere["meshed_volume"] == pytest.approx(4 / 3 * np.pi * 0.3**3, rel=0.08)  # coarse h: the facets cut inside
     worst = report["quality"]["worst_cell"]
     assert re.search(rf"worst cell: q {worst['q']:.2g} at \(.*\), (matrix|inclusion 1).* from the box plane [xyz] = ",
                      capsys.readouterr().out)

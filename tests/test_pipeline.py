@@ -103,6 +103,11 @@ def test_labelled_image_input():
     assert len(ms.inclusions) == 2
     mesh = mesh_rve(ms, MeshConfig(iis=0.08))
     _check(mesh, ms)
+    # the report's inclusion table maps ids back to the image's labels, with each one's meshed volume
+    table = mesh.metadata["inclusions"]
+    assert [(row["id"], row["label"]) for row in table] == [(1, 7), (2, 14)]
+    for row, s in zip(table, specs):
+        assert row["meshed_volume"] == pytest.approx(4 / 3 * np.pi * s.axes[0] ** 3, rel=0.1)
 
 
 @pytest.mark.slow
