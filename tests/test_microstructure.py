@@ -579,9 +579,11 @@ def test_analytic_inclusions_evaluated_together_match_one_by_one(periodic):
     fns = [sphere_sdf(jnp.array([0.2, 0.25, 0.5]), 0.12), sphere_sdf(jnp.array([0.95, 0.7, 0.3]), 0.15),
            ellipsoid_sdf(jnp.array([0.6, 0.3, 0.75]), jnp.array([0.15, 0.08, 0.1])),
            ellipsoid_sdf(jnp.array([0.55, 0.75, 0.8]), jnp.array([0.12, 0.1, 0.06])),
-           jball((0.5, 0.5, 0.1), 0.08)]
+           jball((0.5, 0.5, 0.1), 0.08),
+           grid_phi_fn(make_levelset_grid(ball(nodes(32, 3), (0.1, 0.8, 0.8), 0.08)))]
     ms = Microstructure.from_functions(fns, (1.0, 1.0, 1.0), (32, 32, 32), periodic=periodic)
-    assert [len(g) for g in ms._groups()] == [0, 2, 1]  # spheres and ellipsoids stacked, the lambda alone
+    # spheres and ellipsoids stacked; the lambda and the grid function (large parameters) one by one
+    assert [len(g) for g in ms._groups()] == [0, 2, 2]
     pts = np.random.default_rng(7).random((3000, 3))
     one_by_one = np.stack([ms.inclusion_phi(inc.id, pts) for inc in ms.inclusions])
     near = np.abs(one_by_one.min(axis=0)) < 0.1

@@ -81,14 +81,20 @@ def _map_kernel(func, params, box, window_box, batch):
     return jax.lax.map(lambda a: func(*a[0], box, window_box, a[1]), (params, batch))
 
 
+_GATHER_MAX_PARAMS = 64  # per inclusion: a centre, axes, a rotation; not a grid (copied per point)
+
+
 def _analytic_key(phi_fn):
-    """(func, box or None, parameter shapes) of an analytic Partial level set (periodized or not),
-    None for anything else: inclusions with equal keys are evaluated in one compiled call."""
+    """(func, box or None, parameter shapes) of an analytic Partial level set (periodized or not)
+    with a few array parameters, None for anything else: inclusions with equal keys are evaluated
+    in one compiled call."""
     box = phi_fn.box if isinstance(phi_fn, _Periodized) else None
     f = phi_fn.fn if isinstance(phi_fn, _Periodized) else phi_fn
     if not isinstance(f, jax.tree_util.Partial) or f.func in _KERNEL_SET or f.keywords:
         return None
     if not f.args or not all(isinstance(a, (jax.Array, np.ndarray)) for a in f.args):
+        return None
+    if sum(np.size(a) for a in f.args) > _GATHER_MAX_PARAMS:
         return None
     return f.func, box, tuple((np.shape(a), jnp.result_type(a)) for a in f.args)
 
