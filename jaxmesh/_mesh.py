@@ -289,6 +289,18 @@ class Mesh:
         """(m,) int8: 0 = matrix, 1 = any inclusion."""
         return (self.inclusion_id > 0).astype(np.int8)
 
+    def cell_arrays(self) -> dict[str, np.ndarray]:
+        """Cell data written with the mesh: inclusion_id, phase, and for a labelled-image input
+        (metadata["inclusions"] with labels) label, each cell's label value in the image (0: matrix)."""
+        out = {"inclusion_id": self.inclusion_id, "phase": self.phase}
+        table = self.metadata.get("inclusions") or []
+        if table and all("label" in row for row in table):
+            lut = np.zeros(max(int(row["id"]) for row in table) + 1, np.int64)
+            lut[[int(row["id"]) for row in table]] = [int(row["label"]) for row in table]
+            if self.inclusion_id.size and self.inclusion_id.max() < len(lut):
+                out["label"] = lut[self.inclusion_id]
+        return out
+
     def __repr__(self) -> str:
         n_inc = len(np.unique(self.inclusion_id[self.inclusion_id > 0]))
         return (
@@ -324,13 +336,13 @@ class Mesh:
         return {name: oriented[face == f] for f, name in enumerate(face_names(self.dim))}
 
     def to_meshio(self):
-        """A meshio.Mesh with cell_data inclusion_id and phase, point_sets = boundary node sets."""
+        """A meshio.Mesh with the `cell_arrays` as cell_data, point_sets = boundary node sets."""
         import meshio
 
         return meshio.Mesh(
             self.points,
             [(CELL_TYPES[self.dim], self.cells)],
-            cell_data={"inclusion_id": [self.inclusion_id], "phase": [self.phase]},
+            cell_data={name: [values] for name, values in self.cell_arrays().items()},
             point_sets=self.boundary_nodes(),
         )
 

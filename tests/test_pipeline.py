@@ -90,7 +90,7 @@ def test_non_cubic_box():
     assert np.allclose(mesh.points.max(axis=0), box)
 
 
-def test_labelled_image_input():
+def test_labelled_image_input(tmp_path):
     specs = [_sphere((0.5, 0.5, 0.5), 0.25), _sphere((0.02, 0.05, 0.5), 0.2)]
     phi = sample_levelset(specs, (1.0, 1.0, 1.0), (40, 40, 40))
     labels = np.zeros(phi.shape, np.int32)
@@ -108,6 +108,13 @@ def test_labelled_image_input():
     assert [(row["id"], row["label"]) for row in table] == [(1, 7), (2, 14)]
     for row, s in zip(table, specs):
         assert row["meshed_volume"] == pytest.approx(4 / 3 * np.pi * s.axes[0] ** 3, rel=0.1)
+    # and each cell carries its label value into the files
+    import meshio
+
+    expected = np.array([0, 7, 14])[mesh.inclusion_id]
+    back = meshio.read(mesh.write(tmp_path / "labels.vtu"))
+    np.testing.assert_array_equal(back.cell_data["label"][0], expected)
+    np.testing.assert_array_equal(np.load(mesh.write(tmp_path / "labels.npz"))["label"], expected)
 
 
 @pytest.mark.slow

@@ -78,7 +78,8 @@ def _set_name(k: int) -> str:
 def write_mesh(mesh, path: str | Path, file_format: str | None = None) -> Path:
     """Write a `jaxmesh.Mesh` atomically, the format chosen by extension (or `file_format`).
 
-    Formats: .vtu (cell data inclusion_id, phase; point data boundary flags), .msh (Gmsh 4.1 ASCII,
+    Formats: .vtu (cell data `Mesh.cell_arrays`: inclusion_id, phase, a labelled image's label; point
+    data boundary flags), .msh (Gmsh 4.1 ASCII,
     physical groups per inclusion and per box face, $Periodic from periodic_pairs), .xdmf (XML,
     no h5py), .inp (Abaqus, element sets per inclusion, node sets per face/edge/corner), .vtk
     (legacy VTK), .npz (raw arrays, periodic pairs and metadata as JSON).
@@ -113,7 +114,7 @@ def write_mesh(mesh, path: str | Path, file_format: str | None = None) -> Path:
         else:
             m = meshio.Mesh(_points3(mesh), [(CELL_TYPES[mesh.dim], mesh.cells)],
                             point_data=_boundary_flags(mesh),
-                            cell_data={"inclusion_id": [mesh.inclusion_id], "phase": [mesh.phase]})
+                            cell_data={name: [values] for name, values in mesh.cell_arrays().items()})
             meshio.write(tmp, m, file_format=fmt)
     return path
 
@@ -143,7 +144,7 @@ def _write_xdmf(mesh, tmp: Path) -> None:
                          NumberOfElements=str(mesh.n_cells), NodesPerElement=str(mesh.dim + 1))
     _xdmf_item(topo, mesh.cells)
     for center, data in (("Node", _boundary_flags(mesh)),
-                         ("Cell", {"inclusion_id": mesh.inclusion_id, "phase": mesh.phase})):
+                         ("Cell", mesh.cell_arrays())):
         for name, values in data.items():
             att = ET.SubElement(grid, "Attribute", Name=name, AttributeType="Scalar", Center=center)
             _xdmf_item(att, values)
@@ -151,8 +152,8 @@ def _write_xdmf(mesh, tmp: Path) -> None:
 
 
 def _write_npz(mesh, tmp: Path) -> None:
-    arrays = {"points": mesh.points, "cells": mesh.cells, "inclusion_id": mesh.inclusion_id,
-              "phase": mesh.phase, "box": np.asarray(mesh.box), "periodic": np.asarray(mesh.periodic),
+    arrays = {"points": mesh.points, "cells": mesh.cells, **mesh.cell_arrays(),
+              "box": np.asarray(mesh.box), "periodic": np.asarray(mesh.periodic),
               "metadata_json": np.asarray(json.dumps(mesh.metadata, default=str))}
     for a, p in (mesh.periodic_pairs or {}).items():
         arrays[f"periodic_pairs_{int(a)}"] = np.asarray(p, dtype=np.int64)
