@@ -78,11 +78,11 @@ def _set_name(k: int) -> str:
 def write_mesh(mesh, path: str | Path, file_format: str | None = None) -> Path:
     """Write a `jaxmesh.Mesh` atomically, the format chosen by extension (or `file_format`).
 
-    Formats: .vtu (cell data `Mesh.cell_arrays`: inclusion_id, phase, a labelled image's label; point
-    data boundary flags), .msh (Gmsh 4.1 ASCII,
-    physical groups per inclusion and per box face, $Periodic from periodic_pairs), .xdmf (XML,
-    no h5py), .inp (Abaqus, element sets per inclusion, node sets per face/edge/corner), .vtk
-    (legacy VTK), .npz (raw arrays, periodic pairs and metadata as JSON).
+    Formats: .vtu (cell data `Mesh.cell_arrays`: inclusion_id, phase, a labelled image's label;
+    point data boundary flags), .msh (Gmsh 4.1 ASCII, physical groups per inclusion and per box
+    face, $Periodic from periodic_pairs), .xdmf (XML, no h5py), .inp (Abaqus, element sets per
+    inclusion, node sets per face/edge/corner), .vtk (legacy VTK), .npz (raw arrays, periodic
+    pairs and metadata as JSON).
 
     Args:
         mesh: the mesh to write.
