@@ -50,6 +50,9 @@ def _progress(stage: str, message: str, t0: float) -> None:
 # generate
 
 
+_KEPT_FRACTION_NOTE = 0.8  # grf: say why when dropped components take more than a fifth
+
+
 def _cmd_generate(args: argparse.Namespace) -> int:
     from . import _generate as gen
 
@@ -66,6 +69,13 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         gen.write_input(args.output, None, box, grid_shape, phi=phi)
         _progress("generate", f"excursion set on {grid_shape} grid, node fraction {float((phi < 0).mean()):.4f} "
                               f"-> {args.output}", t0)
+        requested, kept = args.volume_fraction or 0.3, float((phi < 0).mean())
+        if kept < _KEPT_FRACTION_NOTE * requested:
+            steps = args.correlation_length / min(b / n for b, n in zip(box, grid_shape))
+            print(f"    note: node fraction {kept:.4f} against the requested {requested:g}: the components the mesher "
+                  "would refuse (specks, necks under a grid step, pairs under a quarter step apart) were dropped; "
+                  f"the correlation length is {steps:.1f} grid steps, so a longer --correlation-length or a finer "
+                  "--grid keeps more (or try other --seed values)", flush=True)
         spanning = gen.spanning_components(phi)
         if spanning:
             print(f"    note: inclusion(s) {spanning[:10]} reach their own periodic image (the set percolates): "

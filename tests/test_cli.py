@@ -150,6 +150,25 @@ def test_generate_grf_names_the_inclusions_that_percolate(tmp_path, capsys):
     assert "periodic image" not in generate(0.2)[1]
 
 
+def test_generate_grf_says_when_dropped_components_take_the_fraction_down(tmp_path, capsys):
+    """Seed 1 at l = 0.05 (3.2 steps) keeps 0.13 of the requested 0.3 (a large component has a neck
+    under a grid step): generate says so and why; l = 0.08 keeps the fraction and says nothing."""
+
+    def generate(length):
+        out = tmp_path / f"g{length}.npz"
+        assert main(["generate", str(out), "--dim", "2", "--kind", "grf", "--volume-fraction", "0.3",
+                     "--correlation-length", str(length), "--grid", "64", "--seed", "1"]) == 0
+        with np.load(out) as z:
+            return float((z["phi"] < 0).mean()), capsys.readouterr().out
+
+    kept, text = generate(0.05)
+    assert kept < 0.8 * 0.3
+    assert f"node fraction {kept:.4f} against the requested 0.3" in text
+    assert "3.2 grid steps" in text and "--correlation-length" in text
+    kept, text = generate(0.08)
+    assert kept > 0.8 * 0.3 and "against the requested" not in text
+
+
 def test_generate_refuses_a_box_that_is_not_whole_grid_steps(tmp_path, capsys):
     """1.4 x 1 x 0.7 at 48 samples on the shortest side has no common step: generate refuses before
     writing (the file would not load) and names a --grid that works, which then loads."""
