@@ -376,6 +376,17 @@ def _periodic_pairs(reg: _Registry, box) -> dict[int, np.ndarray]:
     return out
 
 
+_FLAT_SLOPE = 0.5  # |grad phi| below this at an intersection: blame the field's saddle, not thinness
+
+
+def _gradient_norm(microstructure, x: np.ndarray) -> float:
+    """|grad phi| of the microstructure's level set at x, by central differences of a tenth of a step."""
+    d = 0.1 * float(np.min(microstructure.spacing))
+    probes = x[None] + d * np.vstack([np.eye(3), -np.eye(3)])
+    values = np.asarray(microstructure.phi(probes), float)
+    return float(np.linalg.norm((values[:3] - values[3:]) / (2 * d)))
+
+
 def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig()) -> SurfaceMesh:
     """Closed surface mesh of a 3D RVE: inclusion interfaces cut by the box plus box faces.
 
@@ -458,9 +469,15 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig())
         if len(bad):
             ids = np.unique(mesh.sides[bad.reshape(-1)])
             x = tuple(round(float(v), 4) for v in mesh.points[mesh.triangles[bad[0]]].reshape(-1, 3).mean(axis=0))
+            slope = _gradient_norm(microstructure, np.asarray(x))
+            cause = ("seen where an inclusion is thinner than about a grid step (a membrane or a filament of the "
+                     "field); hint: sample the field finer or smooth it, or a smaller iis / h_max")
+            if slope < _FLAT_SLOPE:
+                cause = (f"the level set is nearly flat there (|grad phi| = {slope:.2g}; a distance has 1): a saddle "
+                         "of the field close to zero, two lobes about to merge or a neck about to pinch, whose zero "
+                         "set the grid does not pin down; hint: smooth the field, or move its threshold off the "
+                         "saddle")
             raise MeshingError("surfaces", f"{len(bad)} intersecting triangle pairs (regions {ids.tolist()}), the "
-                               f"first near x = {x}; seen where an inclusion "
-                               "is thinner than about a grid step (a membrane or a filament of the field); hint: "
-                               "sample the field finer or smooth it, or a smaller iis / h_max")
+                               f"first near x = {x}; {cause}")
     mesh.metadata["n_self_intersections"] = 0 if config.check_intersections else None
     return mesh

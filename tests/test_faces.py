@@ -157,3 +157,20 @@ def test_random_ellipsoids(seed, box_gap):
     # h = 0.03 is up to 0.6 of the smallest curvature radius here: chords cut a few % (1 % needs h = axis / 6,
     # test_surface); measured on seed 0: mean -2.8 %, worst -5.4 %
     assert np.mean(errors) > -0.035 and np.min(errors) > -0.07 and np.max(errors) < 0.005
+
+
+def test_gradient_norm_tells_a_saddle_of_the_field_from_a_distance():
+    """The intersection error blames a flat field (|grad phi| < 0.5) rather than a thin inclusion: two
+    lobes joined by a smooth union have |grad phi| ~ 0 at the saddle between them, ~1 on their far sides."""
+    from jaxmesh._faces import _FLAT_SLOPE, _gradient_norm
+
+    n, k = 48, 0.05
+    x = np.stack(np.meshgrid(*[np.arange(n) / n] * 3, indexing="ij"), axis=-1)
+    d1 = np.linalg.norm(x - [0.325, 0.5, 0.5], axis=-1) - 0.15
+    d2 = np.linalg.norm(x - [0.675, 0.5, 0.5], axis=-1) - 0.15
+    phi = -k * np.logaddexp(-d1 / k, -d2 / k)
+    ms = Microstructure.from_levelset(phi)
+    assert len(ms.inclusions) == 1
+    assert _gradient_norm(ms, np.array([0.5, 0.5, 0.5])) < 0.1 * _FLAT_SLOPE
+    far = float(ms.phi(np.array([[0.175, 0.5, 0.5]]))[0])
+    assert abs(far) < 0.01 and 0.9 < _gradient_norm(ms, np.array([0.175, 0.5, 0.5])) < 1.1
