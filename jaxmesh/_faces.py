@@ -475,8 +475,9 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig())
             if slope < _FLAT_SLOPE:
                 cause = (f"the level set is nearly flat there (|grad phi| = {slope:.2g}; a distance has 1): a saddle "
                          "of the field close to zero, two lobes about to merge or a neck about to pinch, whose zero "
-                         "set the grid does not pin down; hint: smooth the field, or move its threshold off the "
-                         "saddle")
+                         "set the grid does not pin down; hint: --redistance (MeshConfig(redistance=True)) makes the "
+                         "field a distance to its zero set first; or smooth the field, or move its threshold off "
+                         "the saddle")
             raise MeshingError("surfaces", f"{len(bad)} intersecting triangle pairs (regions {ids.tolist()}), the "
                                f"first near x = {x}; {cause}")
     mesh.metadata["n_self_intersections"] = 0 if config.check_intersections else None

@@ -648,6 +648,8 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
     Returns:
         phi (grid_shape), float64, negative inside.
     """
+    from .geometry._components import first_order_distance  # lazy: the geometry package imports jax
+
     box = _check_box(box)
     shape = _check_grid(grid_shape, box.shape[0])
     h = box / np.asarray(shape)
@@ -665,16 +667,16 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
     field = np.fft.ifftn(np.fft.fftn(rng.normal(size=shape)) * np.exp(-0.25 * correlation_length**2 * k2)).real
     field = (field - field.mean()) / field.std()
     g = field - np.quantile(field, volume_fraction)
-    phi = _first_order_distance(g, g < 0, h)
+    phi = first_order_distance(g, g < 0, h, periodic=True)
     specks = _unresolved_components(phi)  # the mesher refuses them (they are below the grid's resolution)
     inside = (g < 0) & ~specks
-    phi = _first_order_distance(g, inside, h) if specks.any() else phi
+    phi = first_order_distance(g, inside, h, periodic=True) if specks.any() else phi
     for _ in range(_MAX_DROP_ROUNDS):
         refused = _refused_components(phi, box)
         if not refused.any():
             return phi
         inside &= ~refused
-        phi = _first_order_distance(g, inside, h)
+        phi = first_order_distance(g, inside, h, periodic=True)
     raise RuntimeError(f"excursion_set: components still refused after {_MAX_DROP_ROUNDS} rounds")  # pragma: no cover
 
 
@@ -745,25 +747,6 @@ def _unresolved_components(phi: np.ndarray) -> np.ndarray:
         window = np.ix_(*[np.arange(b.start - 1, b.stop + 1) % m for b, m in zip(box, phi.shape)])  # + 1 layer
         bad[c] = chord_thickness(phi[window], labels[window] == c) < _MIN_THICKNESS
     return bad[labels]
-
-
-def _first_order_distance(g: np.ndarray, inside: np.ndarray, h: np.ndarray) -> np.ndarray:
-    """Signed distance-like level set of `inside`: g over its gradient norm at the nodes next to the
-    interface, the periodic Euclidean distance transform to those nodes elsewhere."""
-    from scipy import ndimage
-
-    shape = g.shape
-    grad = np.sqrt(sum(((np.roll(g, -1, k) - np.roll(g, 1, k)) / (2 * h[k])) ** 2 for k in range(len(shape))))
-    band = np.zeros(shape, bool)
-    for k in range(len(shape)):
-        for step in (1, -1):
-            band |= inside != np.roll(inside, step, k)
-    near = np.clip(g / np.maximum(grad, 1e-12), -h.max(), h.max())
-    pad = [(n // 2 + 1,) * 2 for n in shape]  # periodic distance transform on a wrapped copy
-    dist, idx = ndimage.distance_transform_edt(~np.pad(band, pad, mode="wrap"), sampling=h, return_indices=True)
-    core = tuple(slice(p[0], p[0] + n) for p, n in zip(pad, shape))
-    src = tuple((ix[core] - p[0]) % n for ix, p, n in zip(idx, pad, shape))
-    return np.where(inside, -1.0, 1.0) * (dist[core] + np.abs(near[src]))
 
 
 # ------------------------------------------------------------------------------ files, structures

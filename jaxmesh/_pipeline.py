@@ -50,6 +50,9 @@ class MeshConfig:
             "tetwild": fTetWild (pytetwild) on the marching-cubes surface of the grid at edge length
             h (or iis), robust to damaged surfaces but NOT conforming (interface nodes only near the
             level set), NOT periodic (no node pairs) and labelled by the field at the centroids.
+        redistance: a level-set file input is first made a first-order signed distance to its zero
+            set (`Microstructure.from_levelset(..., redistance=True)`): for fields far from a
+            distance, whose nearly flat zero sets (saddles close to the threshold) fold the surfaces.
     """
 
     iis: float = 0.05
@@ -65,6 +68,7 @@ class MeshConfig:
     max_elements: float | None = 5e6
     backend: str = "conforming"
     roll: str | tuple[int, ...] | None = None
+    redistance: bool = False
 
     def __post_init__(self):
         for name in ("iis", "nb_el", "curv_alpha", "grad", "h_max", "h", "max_elements"):
@@ -85,6 +89,8 @@ class MeshConfig:
             raise ValueError(f"MeshConfig.roll: expected None, 'auto' or a tuple of integers, got {self.roll!r}")
         if self.roll is not None and not self.periodic:
             raise ValueError("MeshConfig.roll needs periodic=True: the faces of a plain box are the domain's")
+        if not isinstance(self.redistance, bool):
+            raise ValueError(f"MeshConfig.redistance: expected True or False, got {self.redistance!r}")
         if self.h_max is not None and self.h_max < self.iis:
             raise ValueError(f"MeshConfig.h_max: expected >= iis = {self.iis}, got {self.h_max}")
 
@@ -110,7 +116,7 @@ def _check_sizes_against_box(config: MeshConfig, box) -> None:
         )
 
 
-def _as_microstructure(source, box=None, periodic: bool = True, roll=None):
+def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redistance: bool = False):
     """The Microstructure of source, and the roll applied ({} when none)."""
     from .geometry._microstructure import Microstructure
     from .io._read import load_input
@@ -119,9 +125,12 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None):
         if roll is not None:
             raise ValueError("MeshConfig.roll needs an input file (the grid is rolled as it is read); hint: pass "
                              "the path, or build the Microstructure from np.roll(phi, ...)")
+        if redistance:
+            raise ValueError("MeshConfig.redistance needs an input file (the field is redistanced as it is read); "
+                             "hint: Microstructure.from_levelset(phi, redistance=True)")
         return source, {}
     if isinstance(source, (str, Path)):
-        ms = load_input(source, box=box, periodic=periodic)
+        ms = load_input(source, box=box, periodic=periodic, redistance=redistance)
         if roll is None:
             return ms, {}
         clear, best = box_plane_clearances(ms)
@@ -134,7 +143,7 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None):
                 "clearance_before": float(min(c[0] for c in clear)),
                 "clearance_after": float(min(c[k] for c, k in zip(clear, samples)))}
         if any(samples):
-            ms = load_input(source, box=box, periodic=periodic, roll=samples)
+            ms = load_input(source, box=box, periodic=periodic, roll=samples, redistance=redistance)
         return ms, info
     raise ValueError(
         f"expected a Microstructure or an input path (.npy/.npz/.tif), got {type(source).__name__}; "
@@ -226,7 +235,7 @@ def _retry_config(source, config: MeshConfig, box) -> MeshConfig | None:
     from ._surface import check_clear_of_images
     from .io._read import load_input
 
-    ms = load_input(source, box=box, periodic=True)
+    ms = load_input(source, box=box, periodic=True, redistance=config.redistance)
     try:
         check_clear_of_images(ms.inclusions, ms.box)
     except MeshingError:  # an inclusion meets its own image: no box frame can mesh it
@@ -249,7 +258,8 @@ def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
         return now
 
     t = time.perf_counter()
-    ms, roll = _as_microstructure(source, box=box, periodic=config.periodic, roll=config.roll)
+    ms, roll = _as_microstructure(source, box=box, periodic=config.periodic, roll=config.roll,
+                                  redistance=config.redistance)
     if config.backend == "conforming" and ms.periodic != config.periodic:
         raise ValueError(f"MeshConfig.periodic is {config.periodic} but the microstructure has periodic={ms.periodic} "
                          "(its inclusions are connected across the faces only when periodic); hint: build it with "

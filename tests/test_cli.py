@@ -206,3 +206,19 @@ def test_mesh_and_validate_with_roll_auto(tmp_path, capsys):
     assert re.search(r"rolled by \(\d+, \d+, \d+\) samples", capsys.readouterr().out)
     assert main(["validate", str(out), "--geometry", str(phi), "--roll", "auto"]) == 0
     assert main(["validate", str(out), "--geometry", str(phi)]) == 1
+
+
+def test_mesh_and_validate_with_redistance(tmp_path, capsys):
+    """--redistance meshes a field far from a distance as its first-order distance: valid, recorded in
+    the report's parameters, and `validate --redistance` reads the geometry the same way."""
+    n, radius = 24, 0.3
+    x = np.stack(np.meshgrid(*[np.arange(n) / n] * 3, indexing="ij"), axis=-1)
+    r = np.linalg.norm(x - 0.5, axis=-1)
+    phi, out, report = tmp_path / "phi.npy", tmp_path / "m.vtu", tmp_path / "r.json"
+    np.save(phi, (r**2 - radius**2) * (1 + 0.8 * np.sin(2 * np.pi * x[..., 0])))
+    assert main(["mesh", str(phi), "-o", str(out), "--h", "0.1", "--redistance", "--report", str(report)]) == 0
+    data = json.loads(report.read_text())
+    assert data["metadata"]["validation"]["ok"] is True
+    assert data["metadata"]["parameters"]["redistance"] is True
+    capsys.readouterr()
+    assert main(["validate", str(out), "--geometry", str(phi), "--redistance"]) == 0

@@ -194,6 +194,42 @@ def edt(mask: np.ndarray, spacing, full=None) -> np.ndarray:
     return dist[tuple(slice(p[0], p[0] + w) for p, w in zip(pad, mask.shape))]
 
 
+def first_order_distance(g: np.ndarray, inside: np.ndarray, spacing, periodic: bool) -> np.ndarray:
+    """Signed distance-like level set of `inside` (negative there): g over its gradient norm at the
+    nodes next to the interface (a first-order distance, clipped to one step), plus the Euclidean
+    distance to those nodes elsewhere (periodic: across the faces). The signs are those of `inside`."""
+    h = np.asarray(spacing, float)
+    grad = np.sqrt(sum(g_k**2 for g_k in _gradient(g, h, periodic)))
+    band = np.zeros(g.shape, bool)
+    for k in range(g.ndim):
+        if periodic:
+            for step in (1, -1):
+                band |= inside != np.roll(inside, step, k)
+        else:
+            lo, hi = [slice(None)] * g.ndim, [slice(None)] * g.ndim
+            lo[k], hi[k] = slice(None, -1), slice(1, None)
+            differs = inside[tuple(lo)] != inside[tuple(hi)]
+            band[tuple(lo)] |= differs
+            band[tuple(hi)] |= differs
+    near = np.clip(g / np.maximum(grad, 1e-12), -h.max(), h.max())
+    if periodic:  # distance transform on a wrapped copy
+        pad = [(n // 2 + 1,) * 2 for n in g.shape]
+        dist, idx = ndimage.distance_transform_edt(~np.pad(band, pad, mode="wrap"), sampling=h, return_indices=True)
+        core = tuple(slice(p[0], p[0] + n) for p, n in zip(pad, g.shape))
+        dist, src = dist[core], tuple((ix[core] - p[0]) % n for ix, p, n in zip(idx, pad, g.shape))
+    else:
+        dist, idx = ndimage.distance_transform_edt(~band, sampling=h, return_indices=True)
+        src = tuple(idx)
+    return np.where(inside, -1.0, 1.0) * (dist + np.abs(near[src]))
+
+
+def _gradient(g: np.ndarray, h: np.ndarray, periodic: bool) -> list[np.ndarray]:
+    """Central differences per axis (periodic: wrapped; else one-sided at the borders)."""
+    if periodic:
+        return [(np.roll(g, -1, k) - np.roll(g, 1, k)) / (2 * h[k]) for k in range(g.ndim)]
+    return [np.gradient(g, h[k], axis=k) for k in range(g.ndim)]
+
+
 def nearest_component(labels: np.ndarray, spacing, periodic: bool, pad: int):
     """Distance to, and label of, the nearest component node of every grid node (periodic via a wrap
     pad of `pad` nodes: exact wherever the nearest component is within `pad` steps)."""

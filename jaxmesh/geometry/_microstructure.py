@@ -425,7 +425,8 @@ class Microstructure:
 
     @classmethod
     def from_levelset(cls, values, box=None, periodic=True, order="cubic", *, reach=None,
-                      check_gaps: bool = True, check_necks: bool = True) -> Microstructure:
+                      check_gaps: bool = True, check_necks: bool = True,
+                      redistance: bool = False) -> Microstructure:
         """Inclusions = periodic connected components of {phi < 0} of one global field.
 
         Args:
@@ -440,6 +441,11 @@ class Microstructure:
                 resolution: the size function would refine the gap down to its floor).
             check_necks: refuse inclusions that narrow below one grid step between two resolved
                 parts (a filament in 3D, a strip in 2D: the surfaces cannot follow it).
+            redistance: replace the field by a first-order signed distance to its zero set first
+                (phi / |grad phi| at the nodes next to the interface, the distance to those nodes
+                elsewhere): the same signs at every node, the interface moved within its grid cells.
+                For fields far from a distance, such as a thresholded random field whose saddles lie
+                close to zero: their nearly flat zero sets fold the surfaces.
 
         Returns:
             The Microstructure; each inclusion's description holds n_samples and thickness (steps),
@@ -478,6 +484,8 @@ class Microstructure:
                         f"slices ({typical:.4g}). Hint: pass periodic=False, or sample a periodic field at "
                         "x = i * L / n, i < n (no repeated last node)."
                     )
+        if redistance:
+            v = comp.first_order_distance(v, mask, spacing, periodic)
         scale = gradient_scale(v, mask, spacing)
         scale = scale if abs(scale - 1.0) > 0.25 else 1.0  # distance-like fields are kept as they are
         v = v / scale
@@ -496,7 +504,8 @@ class Microstructure:
             other = (comp.take(labels, idx) > 0) & ~own
             fields.append(comp.levelset_window_field(comp.take(v, idx), own, near_w, c, spacing, win.full, other))
             windows.append(win)
-        descriptions = [{"kind": "levelset", "scale": float(scale)} for _ in range(n)]
+        descriptions = [{"kind": "levelset", "scale": float(scale), **({"redistanced": True} if redistance else {})}
+                        for _ in range(n)]
         return cls._from_windows(box, periodic, order, labels, (starts, lengths), windows, fields, r,
                                  descriptions, "from_levelset", check_gaps, check_necks)
 

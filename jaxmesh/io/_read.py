@@ -19,12 +19,12 @@ def _fail(path, what: str, hint: str):
     raise ValueError(f"load_input({str(path)!r}): {what}. Hint: {hint}")
 
 
-def _construct(path, kind: str, array, box, periodic):
+def _construct(path, kind: str, array, box, periodic, **options):
     """Microstructure.from_<kind>, its ValueError prefixed with the file."""
     from ..geometry._microstructure import Microstructure  # lazy: reading a file needs no jax
 
     try:
-        return getattr(Microstructure, f"from_{kind}")(array, box=box, periodic=periodic)
+        return getattr(Microstructure, f"from_{kind}")(array, box=box, periodic=periodic, **options)
     except ValueError as err:
         raise ValueError(f"load_input({str(path)!r}): {err}") from None
 
@@ -42,17 +42,17 @@ def _rolled(array: np.ndarray, roll, periodic: bool, path) -> np.ndarray:
     return np.roll(array, [-int(k) for k in roll], axis=tuple(range(array.ndim)))
 
 
-def _build(array: np.ndarray, box, periodic: bool, path):
+def _build(array: np.ndarray, box, periodic: bool, path, redistance: bool = False):
     """Level set if real-valued, labelled image if integer / bool."""
     if array.dtype.kind in "biu":
         return _construct(path, "labels", array, box, periodic)
     if array.dtype.kind == "f":
-        return _construct(path, "levelset", array, box, periodic)
+        return _construct(path, "levelset", array, box, periodic, redistance=redistance)
     _fail(path, f"expected a float (level set) or integer/bool (labels) array, got dtype {array.dtype}",
           "save phi as float64 or labels as an integer image")
 
 
-def _read_npz(path: Path, box, periodic, roll=None):
+def _read_npz(path: Path, box, periodic, roll=None, redistance: bool = False):
     try:
         with np.load(path, allow_pickle=False) as npz:
             data = {key: npz[key] for key in npz.files}
@@ -68,7 +68,7 @@ def _read_npz(path: Path, box, periodic, roll=None):
     if periodic is None:
         periodic = bool(np.asarray(data["periodic"]).item()) if "periodic" in data else True
     if single:  # read as a .npy
-        return _build(_rolled(np.asarray(data["arr_0"]), roll, periodic, path), box, periodic, path)
+        return _build(_rolled(np.asarray(data["arr_0"]), roll, periodic, path), box, periodic, path, redistance)
     if roll is not None:
         key = "phi" if "phi" in data else "labels"
         shape = np.shape(data[key])
@@ -93,7 +93,7 @@ def _read_npz(path: Path, box, periodic, roll=None):
         if phi.dtype.kind not in "f":
             _fail(path, f"expected 'phi' to hold real level-set values, got dtype {phi.dtype}",
                   "store labelled images under the key 'labels'")
-        return _construct(path, "levelset", phi, box, periodic)
+        return _construct(path, "levelset", phi, box, periodic, redistance=redistance)
     labels = np.asarray(data["labels"])
     if labels.dtype.kind not in "biu":
         _fail(path, f"expected 'labels' to hold integers or bools, got dtype {labels.dtype}",
@@ -101,7 +101,7 @@ def _read_npz(path: Path, box, periodic, roll=None):
     return _build(labels, box, periodic, path)
 
 
-def _read_vti(path: Path, box, periodic, roll=None):
+def _read_vti(path: Path, box, periodic, roll=None, redistance: bool = False):
     try:
         import pyvista
     except ImportError:
@@ -119,10 +119,10 @@ def _read_vti(path: Path, box, periodic, roll=None):
     array = np.asarray(image.point_data[name]).reshape(dims[::-1]).transpose()  # VTK: x fastest
     if box is None:
         box = tuple(float(n * h) for n, h in zip(image.dimensions, image.spacing) if n > 1)
-    return _build(_rolled(array, roll, periodic, path), box, periodic, path)
+    return _build(_rolled(array, roll, periodic, path), box, periodic, path, redistance)
 
 
-def load_input(path, box=None, periodic: bool | None = None, roll=None):
+def load_input(path, box=None, periodic: bool | None = None, roll=None, redistance: bool = False):
     """Read a microstructure from a file.
 
     Args:
@@ -135,6 +135,8 @@ def load_input(path, box=None, periodic: bool | None = None, roll=None):
         roll: optional d integers: read the periodic grid rolled so that sample roll[a] lies at
             x_a = 0 (the box faces move to x_a = roll[a] L_a / n_a of the file's frame; the mesh is
             then in the rolled frame). Analytic inclusions move with it. See `clearest_roll`.
+        redistance: level sets only (labelled images and analytic inclusions are distances
+            already): see `Microstructure.from_levelset`.
 
     Returns:
         A Microstructure.
@@ -153,14 +155,14 @@ def load_input(path, box=None, periodic: bool | None = None, roll=None):
         _fail(path, "no such file", "check the path (relative paths start from the working directory)")
     ext = "".join(path.suffixes[-1:]).lower()
     if ext == ".npz":
-        return _read_npz(path, box, periodic, roll)
+        return _read_npz(path, box, periodic, roll, redistance)
     periodic = True if periodic is None else periodic
     if ext == ".npy":
         try:
             array = np.load(path, allow_pickle=False)
         except Exception as err:
             _fail(path, f"could not read it as .npy ({err})", "write it with numpy.save")
-        return _build(_rolled(np.asarray(array), roll, periodic, path), box, periodic, path)
+        return _build(_rolled(np.asarray(array), roll, periodic, path), box, periodic, path, redistance)
     if ext in (".tif", ".tiff"):
         try:
             from skimage import io as skio
@@ -168,7 +170,7 @@ def load_input(path, box=None, periodic: bool | None = None, roll=None):
             array = np.asarray(skio.imread(str(path)))
         except Exception as err:
             _fail(path, f"could not read the TIFF ({err})", "save a single-channel 2D image or 3D stack")
-        return _build(_rolled(array, roll, periodic, path), box, periodic, path)
+        return _build(_rolled(array, roll, periodic, path), box, periodic, path, redistance)
     if ext == ".vti":
-        return _read_vti(path, box, periodic, roll)
+        return _read_vti(path, box, periodic, roll, redistance)
     _fail(path, f"unknown extension {ext or '(none)'!r}", f"supported formats: {_FORMATS}")
