@@ -5,12 +5,14 @@ class MeshingError(RuntimeError):
     """A meshing stage failed on valid input.
 
     Carries the stage name and, where it applies, the inclusion id, so that a user
-    can tell which part of a large RVE caused the failure.
+    can tell which part of a large RVE caused the failure. frame_dependent=False marks a
+    cause that moving the box planes cannot remove (mesh_rve then skips its rolled retry).
     """
 
-    def __init__(self, stage: str, message: str, inclusion: int | None = None):
+    def __init__(self, stage: str, message: str, inclusion: int | None = None, *, frame_dependent: bool = True):
         self.stage = stage
         self.inclusion = inclusion
         self.message = message
+        self.frame_dependent = frame_dependent
         where = f"stage '{stage}'" + (f", inclusion {inclusion}" if inclusion is not None else "")
         super().__init__(f"{where}: {message}")

@@ -479,6 +479,6 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig())
                          "field a distance to its zero set first; or smooth the field, or move its threshold off "
                          "the saddle")
             raise MeshingError("surfaces", f"{len(bad)} intersecting triangle pairs (regions {ids.tolist()}), the "
-                               f"first near x = {x}; {cause}")
+                               f"first near x = {x}; {cause}", frame_dependent=slope >= _FLAT_SLOPE)
     mesh.metadata["n_self_intersections"] = 0 if config.check_intersections else None
     return mesh

@@ -208,7 +208,7 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
     try:
         return _mesh_rve(source, config, box, say)
     except MeshingError as failure:
-        rolled = _retry_config(source, config, box)
+        rolled = _retry_config(source, config, box) if failure.frame_dependent else None
         if rolled is None:
             raise
         line = (f"{failure}; meshing again with the box planes moved off the inclusions (roll='auto'; the mesh "

@@ -148,6 +148,25 @@ def test_a_failure_in_the_files_frame_is_meshed_again_rolled(tmp_path, monkeypat
         mesh_rve(path, MeshConfig(h=0.08, seed=0, validate=False))
 
 
+def test_a_failure_no_frame_can_remove_is_not_meshed_again(tmp_path, monkeypatch):
+    """A MeshingError marked frame_dependent=False (a fold of a flat level set: the field is the same in
+    any frame) is raised at once, without the rolled retry."""
+    from jaxmesh import MeshingError, _pipeline
+
+    path = _grazing_sphere_file(tmp_path / "graze.npy")
+    calls = []
+
+    def fails_in_any_frame(ms, config, stage, t):
+        calls.append(config.roll)
+        raise MeshingError("surfaces", "the level set is nearly flat there", frame_dependent=False)
+
+    monkeypatch.setattr(_pipeline, "_mesh_3d", fails_in_any_frame)
+    lines = []
+    with pytest.raises(MeshingError, match="nearly flat"):
+        mesh_rve(path, MeshConfig(h=0.08), progress=lines.append)
+    assert calls == [None] and not any("retry" in line for line in lines)
+
+
 def test_a_failure_that_rolling_cannot_help_is_raised_as_it_is(tmp_path, monkeypatch):
     from jaxmesh import MeshingError, _pipeline
 
