@@ -10,6 +10,7 @@ import dataclasses
 import math
 import time
 import warnings
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
@@ -172,6 +173,19 @@ def _inside_out_hint(ms) -> str:
             "them: if your field is negative in the matrix, pass -phi")
 
 
+def _parts_note(ms) -> str:
+    """A note for the input line when a label of an image came in several regions (a phase image):
+    each region is its own inclusion, and the cell data `label` keeps the image value."""
+    parts = Counter(inc.description["label"] for inc in ms.inclusions if "part" in inc.description)
+    split = sorted((label, count) for label, count in parts.items() if count > 1)
+    if not split:
+        return ""
+    listed = ", ".join(f"label {label}: {count}" for label, count in split[:8])
+    more = f" and {len(split) - 8} more" if len(split) > 8 else ""
+    return (f"; image labels in several regions, one inclusion per region ({listed}{more}); cell data 'label' "
+            "keeps the image value")
+
+
 def _grazing_hint(ms) -> str:
     """A note for the input line when a periodic box plane passes closer to an inclusion's extreme than
     the size function's box-gap floor (a sixth of a grid step): the wedge there will hold flat tets."""
@@ -269,7 +283,8 @@ def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
               f"{tuple(round(v, 6) for v in roll['offset'])}; box planes {roll['clearance_after']:.3g} from the "
               f"nearest inclusion extreme, {roll['clearance_before']:.3g} unrolled)") if roll else ""
     t = stage("input", t, f"{ms.dim}D, {len(ms.inclusions)} inclusions, grid {tuple(ms.grid_shape)}{rolled}"
-                          f"{_grazing_hint(ms) if config.roll is None else ''}{_inside_out_hint(ms)}")
+                          f"{_parts_note(ms)}{_grazing_hint(ms) if config.roll is None else ''}"
+                          f"{_inside_out_hint(ms)}")
 
     if ms.dim == 2 and config.backend != "conforming":
         raise ValueError(f"backend {config.backend!r} meshes 3D inputs only; hint: 2D inputs use the default backend")

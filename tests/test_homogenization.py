@@ -207,6 +207,8 @@ def test_bad_input():
     with pytest.raises(ValueError, match="integer ids"):
         homogenize_conductivity(mesh, {"matrix": 1.0, 1: 2.0})
     with pytest.raises(ValueError, match="by:"):
+        homogenize_conductivity(mesh, 1.0, by="material")
+    with pytest.raises(ValueError, match="labelled image"):  # no cell data 'label': not from an image
         homogenize_conductivity(mesh, 1.0, by="label")
     with pytest.raises(ValueError, match="solver:"):
         homogenize_conductivity(mesh, 1.0, solver="lu")

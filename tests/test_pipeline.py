@@ -117,6 +117,33 @@ def test_labelled_image_input(tmp_path):
     np.testing.assert_array_equal(np.load(mesh.write(tmp_path / "labels.npz"))["label"], expected)
 
 
+def test_phase_image_input():
+    """A segmented image holds phases, not inclusions: label 1 in three regions (one across the box
+    corner), label 2 in one. Each region is an inclusion; the cells keep the image value as `label`,
+    which homogenize_conductivity(by="label") reads."""
+    from jaxmesh import homogenize_conductivity
+
+    n = 32
+    pts = (np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1) + 0.5) / n
+    labels = np.zeros((n, n, n), np.uint8)
+    for value, centre, radius in [(1, (0.03, 0.97, 0.02), 0.2), (1, (0.5, 0.5, 0.5), 0.17),
+                                  (1, (0.75, 0.2, 0.7), 0.13), (2, (0.25, 0.3, 0.6), 0.14)]:
+        d = pts - np.asarray(centre)
+        labels[np.linalg.norm(d - np.round(d), axis=-1) < radius] = value
+    ms = Microstructure.from_labels(labels)
+    assert sorted((i.description["label"], i.description["part"]) for i in ms.inclusions) == [(1, 1), (1, 2), (1, 3),
+                                                                                               (2, 1)]
+    mesh = mesh_rve(ms, MeshConfig(iis=0.08))
+    _check(mesh, ms)
+    label = mesh.cell_arrays()["label"]
+    lut = {row["id"]: row["label"] for row in mesh.metadata["inclusions"]}
+    np.testing.assert_array_equal(label, [lut.get(int(i), 0) for i in mesh.inclusion_id])
+    assert set(np.unique(label).tolist()) == {0, 1, 2}
+    by_label = homogenize_conductivity(mesh, {0: 1.0, 1: 10.0, 2: 0.1}, by="label")
+    by_id = homogenize_conductivity(mesh, {0: 1.0, **{i: (10.0 if v == 1 else 0.1) for i, v in lut.items()}})
+    np.testing.assert_allclose(by_label, by_id, rtol=1e-12)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("shape, seed", [("sphere", 0), ("sphere", 1), ("ellipsoid", 0), ("ellipsoid", 1)])
 def test_random_rve_default_settings(shape, seed):

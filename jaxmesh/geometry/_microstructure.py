@@ -513,10 +513,12 @@ class Microstructure:
     def from_labels(cls, labels, box=None, periodic=True, *, reach=None) -> Microstructure:
         """Inclusions from a labelled image: 0 matrix, k > 0 inclusion (bool: each component one).
 
-        Periodic: each label must be one connected region (merged across periodic faces). Not
-        periodic: a label in several parts (one the box cuts, as a crop does) gives one inclusion per
-        part (description["part"] 1, 2, ...). Inclusions are numbered 1..N by increasing label (the
-        original is kept in description["label"]). The
+        Each connected region of one label (face-connected, across the periodic faces when periodic)
+        is one inclusion: a label in several parts (a phase image such as 0 matrix, 1 aggregate,
+        2 pore; or a crop whose box cuts a region) gives one inclusion per part (description["part"]
+        1, 2, ...). Inclusions are numbered 1..N by increasing label, parts in scan order (the
+        original is kept in description["label"]). Regions of different labels must not share a
+        grid face. The
         level set of each is the signed distance to its voxels with the interface half a step
         from the nodes, lightly smoothed.
 
@@ -547,14 +549,7 @@ class Microstructure:
             first = np.zeros(n + 1, dtype=lab.dtype)
             first[comps.ravel()] = lab.ravel()
             values = first[1:]
-            uniq, counts = np.unique(values, return_counts=True)
-            if periodic and (counts > 1).any():
-                split = ", ".join(f"label {u} has {c} parts" for u, c in zip(uniq, counts) if c > 1)
-                raise ValueError(
-                    "from_labels expected each label to be one connected region (face-connected, across "
-                    f"periodic faces), got {split}. Hint: relabel, e.g. scipy.ndimage.label(labels > 0)."
-                )
-            # not periodic, a label in several parts (the box cuts it, as a crop does): one inclusion per part
+            # a label in several parts (a phase image, or a crop the box cuts): one inclusion per part
             order = np.argsort(values, kind="stable")  # ids 1..N by increasing label, parts in scan order
             relabel = np.zeros(n + 1, np.int32)
             relabel[order + 1] = np.arange(1, n + 1)
