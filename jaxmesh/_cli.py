@@ -76,11 +76,10 @@ def _cmd_generate(args: argparse.Namespace) -> int:
                   "would refuse (specks, necks under a grid step, pairs under a quarter step apart) were dropped; "
                   f"the correlation length is {steps:.1f} grid steps, so a longer --correlation-length or a finer "
                   "--grid keeps more (or try other --seed values)", flush=True)
-        spanning = gen.spanning_components(phi)
+        spanning = gen.spanning_components(phi) if args.dim == 2 else []
         if spanning:
             print(f"    note: inclusion(s) {spanning[:10]} reach their own periodic image (the set percolates): "
-                  "`jaxmesh mesh` refuses them on its conforming path; lower --volume-fraction, or mesh with "
-                  "--backend tetwild", flush=True)
+                  "`jaxmesh mesh` refuses them in 2D (3D meshes them); lower --volume-fraction", flush=True)
         return 0
     shape = args.kind
     if args.dim == 2:

@@ -22,7 +22,7 @@ from ._errors import MeshingError
 from ._intersect import intersecting_pairs
 from ._octree import periodic_octree_nodes
 from ._periodic import wrap
-from ._surface import SurfaceConfig, as_size_fn, check_clear_of_images, evaluate_size, mesh_inclusion
+from ._surface import SurfaceConfig, as_size_fn, evaluate_size, mesh_inclusion
 from ._surface_mesh import BOX_FACE, INTERFACE, OUTSIDE, SurfaceMesh
 from ._triangulate2d import (
     circumcenters,
@@ -416,8 +416,6 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig())
     if not isinstance(config, SurfaceConfig):
         raise ValueError(f"config: expected SurfaceConfig, got {type(config).__name__}.")
     box, periodic = microstructure.box, microstructure.periodic
-    if periodic:
-        check_clear_of_images(microstructure.inclusions, box)
     h_fn = as_size_fn(h, box, periodic)
     t0 = time.perf_counter()
     reg = _Registry()

@@ -513,6 +513,14 @@ def mesh_2d(
         t0 = now
 
     ms = _as_microstructure(microstructure)
+    if ms.periodic:
+        for inc in ms.inclusions:
+            span = (np.asarray(inc.upper, float) - np.asarray(inc.lower, float)) / np.asarray(ms.box, float)
+            if (span > 0.999).any():
+                raise MeshingError("contours", f"the inclusion reaches its own periodic image along axis "
+                                   f"{int(np.argmax(span))} (it percolates: a channel or a band across the box); the "
+                                   "2D mesher needs every inclusion clear of its images (3D meshes such inclusions); "
+                                   "hint: --no-periodic meshes the window as a plain box", inc.id, frame_dependent=False)
     kw = {k: v for k, v in dict(iis=iis, nb_el=nb_el, curv_alpha=curv_alpha, grad=grad, h_max=h_max).items()
           if v is not None}
     size = _resolve_size(ms, h, kw)

@@ -246,14 +246,9 @@ def _retry_config(source, config: MeshConfig, box) -> MeshConfig | None:
     if config.roll is not None or not config.periodic or config.backend != "conforming" \
             or not isinstance(source, (str, Path)):
         return None
-    from ._surface import check_clear_of_images
     from .io._read import load_input
 
     ms = load_input(source, box=box, periodic=True, redistance=config.redistance)
-    try:
-        check_clear_of_images(ms.inclusions, ms.box)
-    except MeshingError:  # an inclusion meets its own image: no box frame can mesh it
-        return None
     clear, best = box_plane_clearances(ms)
     if min(c[k] for c, k in zip(clear, best)) <= min(c[0] for c in clear):
         return None
@@ -344,12 +339,10 @@ def _warn_if_float32() -> None:
 
 def _mesh_3d(ms, config: MeshConfig, stage, t):
     from ._faces import mesh_surfaces
-    from ._surface import as_size_fn, check_clear_of_images, evaluate_size
+    from ._surface import as_size_fn, evaluate_size
     from ._volume import tetrahedralize
     from ._volume_recover import levelset_projector
 
-    if ms.periodic:
-        check_clear_of_images(ms.inclusions, ms.box)  # before the size function: fail fast
     if config.h is not None:
         h_jax = float(config.h)
         h_np = lambda p: np.full(len(p), float(config.h))  # noqa: E731

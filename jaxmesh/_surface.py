@@ -23,10 +23,12 @@ from ._errors import MeshingError
 from ._periodic import minimum_image
 from ._quality import cross3, min_angles
 from ._surface_ops import (
+    TraceMismatch,
     collapse_edges,
     cut_plane,
     flip_edges,
     half_edges,
+    match_opposite_traces,
     refine,
     snap_candidates,
     straddling,
@@ -197,18 +199,35 @@ def level_set_gradient(phi_fn, points: np.ndarray) -> np.ndarray:
     return project(phi_fn, points, np.ones((len(points), 3), bool), 0)[2]
 
 
-def check_clear_of_images(inclusions, box) -> None:
-    """Raise MeshingError for the first inclusion whose bounds span the box along an axis: it
-    reaches its own periodic image (a percolating network, an endless fibre), and each surface is
-    meshed as one closed piece in unwrapped coordinates."""
-    L = np.asarray(box, float)
-    for inc in inclusions:
-        span = (np.asarray(inc.upper, float) - np.asarray(inc.lower, float)) / L
-        if (span > 0.999).any():
-            a = int(np.argmax(span))
-            raise MeshingError("surfaces", f"the inclusion spans {span[a]:.0%} of the box along axis {a}: it reaches "
-                               "its own periodic image (a percolating network, an endless fibre); the conforming "
-                               "mesher needs every inclusion clear of its images", inc.id)
+def percolating_axes(inclusion, box) -> tuple[int, ...]:
+    """The axes along which a periodic inclusion's bounds span the box: it reaches its own
+    periodic image there (a percolating network, an endless fibre)."""
+    span = (np.asarray(inclusion.upper, float) - np.asarray(inclusion.lower, float)) / np.asarray(box, float)
+    return tuple(int(a) for a in np.flatnonzero(span > 0.999))
+
+
+def _periodic_traces(points, tris, on_plane, phi_fn, box, axes, inclusion_id: int, config: SurfaceConfig):
+    """The part of a percolating inclusion's cut surface inside the box along `axes`, its traces on
+    opposite planes made translates (`match_opposite_traces`), and the free nodes next to them
+    smoothed (neighbour mean projected onto phi = 0) where the matching moved or split a trace."""
+    keep = (triangle_cells(points, tris, box)[:, list(axes)] == 0).all(axis=1)
+    before = points.copy()
+    n0 = len(points)
+    try:
+        points, tris, on_plane = match_opposite_traces(points, tris[keep], on_plane, box, axes)
+    except TraceMismatch as err:
+        raise MeshingError("surfaces", f"the inclusion percolates along axes {list(axes)} and its traces on opposite "
+                           f"box planes cannot be paired: {err}", inclusion_id) from None
+    changed = np.concatenate([np.flatnonzero((points[:n0] != before).any(axis=1)), np.arange(n0, len(points))])
+    ring = np.unique(tris[np.isin(tris, changed).any(axis=1)])
+    ring = np.unique(tris[np.isin(tris, ring).any(axis=1)])  # two rings
+    ring = ring[~on_plane[ring].any(axis=1)]
+    for _ in range(3):
+        if not len(ring):
+            break
+        points[ring], _, _ = project(phi_fn, neighbour_mean(points, tris)[ring], np.zeros((len(ring), 3), bool),
+                                     config.newton_steps)
+    return points, tris, on_plane
 
 
 def extract(phi_fn, lower, upper, step: float, box, periodic: bool = True, reach: float | None = None):
@@ -457,20 +476,23 @@ def wrap_pieces(points, tris, on_plane, box):
 
 
 class BoxCapped(eqx.Module):
-    """An inclusion's level set closed off `cap` beyond the box planes (not periodic): the
+    """An inclusion's level set closed off `cap` beyond the box planes of `axes`: the
     intersection, rounded with radius cap / 2, with the box grown by cap. Equal to phi_fn up to
     cap / 2 beyond the planes, where the box cuts it; the rest is dropped after the cut. A grid
-    inclusion cut by the domain boundary continues as an extrusion beyond it, which is not closed."""
+    inclusion cut by the domain boundary continues as an extrusion beyond it, and a percolating
+    one as its next periodic copy: neither is closed."""
 
     phi_fn: Callable
     box: tuple[float, ...] = eqx.field(static=True)
     cap: jax.Array
+    axes: tuple[int, ...] = eqx.field(static=True, default=(0, 1, 2))
 
     def __call__(self, points):
         points = jnp.asarray(points)
         phi = jnp.reshape(self.phi_fn(points), points.shape[:-1])
         r = 0.5 * self.cap
-        for a, L in enumerate(self.box):
+        for a in self.axes:
+            L = self.box[a]
             for beyond in (-points[..., a] - self.cap, points[..., a] - L - self.cap):
                 u = jnp.maximum(jnp.stack([r + phi, r + beyond], axis=-1), 0.0)
                 sq = jnp.sum(u * u, axis=-1)
@@ -508,7 +530,7 @@ def _walk(phi_fn, q, direction, step: float, newton_steps: int, done, max_steps:
     return q
 
 
-def settle_caps(points, phi_fn, h_fn, box, newton_steps: int):
+def settle_caps(points, phi_fn, h_fn, box, newton_steps: int, axes=(0, 1, 2)):
     """Make the nodes agree with the level set about which box planes it crosses.
 
     A cap beyond a plane thinner than the node spacing may hold no node, so the surface would not
@@ -521,7 +543,7 @@ def settle_caps(points, phi_fn, h_fn, box, newton_steps: int):
     """
     L = np.asarray(box, float)
     points = points.copy()
-    for a in range(3):
+    for a in axes:
         for sign in (-1.0, 1.0):
             i = int(np.argmax(sign * points[:, a]))
             plane = points[i, a] - minimum_image(points[i, a], L[a])  # the nearest plane k L
@@ -561,19 +583,23 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
     centre = jnp.asarray(((lower + upper) / 2)[None])
     h0 = float(evaluate_size(h_fn, np.asarray(centre))[0])
     step = min(config.mc_step * h0, float(np.min(upper - lower)) / 4)
-    if not periodic:
+    # closed off beyond the box: every axis when not periodic; the axes along which a periodic
+    # inclusion reaches its own image (it percolates), where no closed surface exists
+    capped = tuple(range(3)) if not periodic else percolating_axes(inclusion, box)
+    if capped:
         cap = 2.0 * step
-        phi_fn = BoxCapped(phi_fn, tuple(float(v) for v in L), jnp.asarray(cap))
+        phi_fn = BoxCapped(phi_fn, tuple(float(v) for v in L), jnp.asarray(cap), capped)
         # the surface of an inclusion the box cuts goes on beyond it (a grid one as an extrusion of
         # the border samples) up to the cap: the window reaches the cap
-        lower = np.where(lower < cap, -cap, lower)
-        upper = np.where(upper > L - cap, L + cap, upper)
+        inner = np.isin(np.arange(3), capped)
+        lower = np.where(inner & (lower < cap), -cap, lower)
+        upper = np.where(inner & (upper > L - cap), L + cap, upper)
         if (upper <= lower).any():
             raise MeshingError("surfaces", "the inclusion lies outside the box", inclusion.id)
     for _ in range(_MC_ATTEMPTS):
-        # not periodic: a piece the box cuts thin (a small step) may still overhang its bounds beyond
+        # capped: a piece the box cuts thin (a small step) may still overhang its bounds beyond
         # the box planes, up to the cap (an analytic level set widens there; a grid one is extruded)
-        raw, tris = extract(phi_fn, lower, upper, step, box, periodic, reach=config.mc_step * h0)
+        raw, tris = extract(phi_fn, lower, upper, step, box, periodic and not capped, reach=config.mc_step * h0)
         if len(tris) < 4:
             raise MeshingError("surfaces", "marching cubes found no closed surface", inclusion.id)
         edge_use = np.bincount(half_edges(tris, len(raw))[1].reshape(-1))
@@ -594,7 +620,8 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
     if (pts.min(0) < lower - 0.25 * L).any() or (pts.max(0) > upper + 0.25 * L).any():
         raise MeshingError("surfaces", "surface nodes left the inclusion's neighbourhood during relaxation "
                            "(a degenerate level set? check the input near this inclusion)", inclusion.id)
-    pts = settle_caps(pts, phi_fn, h_fn, box, config.newton_steps)
+    pts = settle_caps(pts, phi_fn, h_fn, box, config.newton_steps,
+                      tuple(a for a in range(3) if a not in capped) if periodic else (0, 1, 2))
     crosses = (np.floor(pts.min(0) / L) != np.floor(pts.max(0) / L)).any()
     if crosses:
         for _ in range(3):
@@ -606,6 +633,8 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
         else:  # last resort: cut what still straddles without snapping
             pts, tris, on_plane = cut_by_box(pts, tris, on_plane, phi_fn, box, h_fn,
                                              dataclasses.replace(config, snap_fraction=0.0))
+    if periodic and capped:
+        pts, tris, on_plane = _periodic_traces(pts, tris, on_plane, phi_fn, box, capped, inclusion.id, config)
     if periodic:
         wp, wt, src = wrap_pieces(pts, tris, on_plane, box)
     else:

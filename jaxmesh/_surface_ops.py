@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ._quality import cell_quality, cross3
 
@@ -341,3 +342,146 @@ def collapse_edges(points, tris, on_plane, short: np.ndarray, max_length: np.nda
     remap = np.full(n, -1, np.int64)
     remap[keep_ids] = np.arange(len(keep_ids))
     return points[keep_ids], remap[np.asarray(tri, np.int64)[alive]], on_plane[keep_ids], done
+
+
+def boundary_edges(tris: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Edges of an open surface used by one triangle only.
+
+    Returns:
+        (edges (b, 2) in their triangle's orientation, tri (b,) that triangle, slot (b,): the edge is
+        (tri[slot], tri[slot + 1])).
+    """
+    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    key = np.minimum(e[:, 0], e[:, 1]) * n + np.maximum(e[:, 0], e[:, 1])
+    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    once = np.flatnonzero(counts[inv] == 1)
+    return e[once], once % len(tris), once // len(tris)
+
+
+class TraceMismatch(ValueError):
+    """The open boundaries of a surface on two opposite box planes cannot be made translates."""
+
+
+def _find(parent: list, i: int) -> int:
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
+def _nearest_segment(q: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For points q (k, 2): index of the nearest segment a-b (m, 2) and the parameter along it."""
+    ab = b - a
+    t = np.einsum("kmd,md->km", q[:, None] - a[None], ab) / np.maximum(np.einsum("md,md->m", ab, ab), 1e-300)
+    t = np.clip(t, 0.0, 1.0)
+    d = np.linalg.norm(q[:, None] - (a[None] + t[..., None] * ab[None]), axis=2)
+    j = np.argmin(d, axis=1)
+    return j, t[np.arange(len(q)), j]
+
+
+def match_opposite_traces(points, tris, on_plane, box, axes):
+    """Make an open surface's boundary on x_a = L the exact translate of its boundary on x_a = 0.
+
+    A percolating inclusion's surface, closed off beyond the box and cut by the planes x_a = 0 and
+    L, ends on two traces of one periodic curve, discretised independently. Per axis in `axes`,
+    nodes of the two traces that are mutual nearest neighbours within half a trace segment become
+    one periodic pair (the x_a = L node takes the x_a = 0 node's other coordinates); every other
+    trace node is inserted into the opposite trace's nearest segment (its triangle split in two).
+    Nodes on a box edge pair up along both of its planes.
+
+    Args:
+        points: (n, 3) unwrapped along the other axes. tris: (t, 3) open surface inside
+            [0, L_a] along each a in axes. on_plane: (n, 3) bool. box: (3,). axes: the axes.
+    Returns:
+        (points, tris, on_plane): opposite traces equal as point sets and as segments.
+    Raises:
+        TraceMismatch: a box-edge node without its partner, or traces that still differ.
+    """
+    L = np.asarray(box, float)
+    points, tris, on_plane = points.copy(), tris.copy(), on_plane.copy()
+    for a in axes:  # plane coordinates exactly 0 or L
+        points[on_plane[:, a], a] = np.round(points[on_plane[:, a], a] / L[a]) * L[a]
+    parent = list(range(len(points)))
+
+    def trace(a, value):
+        e, t, s = boundary_edges(tris, len(points))
+        on = on_plane[e, a].all(axis=1) & (points[e, a] == value).all(axis=1)
+        return e[on], t[on], s[on]
+
+    for a in axes:
+        other = [k for k in range(3) if k != a]
+        (e0, t0, s0), (e1, t1, s1) = trace(a, 0.0), trace(a, L[a])
+        if not len(e0) and not len(e1):
+            continue
+        if not len(e0) or not len(e1):
+            raise TraceMismatch(f"the surface ends on x_{a} = {'L' if len(e1) else '0'} only")
+        sides = []
+        for e in (e0, e1):
+            nodes = np.unique(e)
+            seg = np.linalg.norm(points[e[:, 0]] - points[e[:, 1]], axis=1)
+            spacing = np.full(len(points), np.inf)
+            np.minimum.at(spacing, e[:, 0], seg)
+            np.minimum.at(spacing, e[:, 1], seg)
+            sides.append((nodes, points[nodes][:, other], spacing[nodes]))
+        (n0, u0, h0), (n1, u1, h1) = sides
+        d01, j01 = cKDTree(u1).query(u0)
+        _, j10 = cKDTree(u0).query(u1)
+        pair = (j10[j01] == np.arange(len(n0))) & (d01 < 0.5 * np.minimum(h0, h1[j01]))
+        for i, j in zip(n0[pair], n1[j01[pair]]):
+            parent[_find(parent, int(j))] = _find(parent, int(i))
+        single0 = np.ones(len(n0), bool)
+        single0[pair] = False
+        single1 = np.ones(len(n1), bool)
+        single1[j01[pair]] = False
+        inserts = []  # (triangle, slot, parameter, new node)
+        for nodes, single, e, t, s, value in ((n0, single0, e1, t1, s1, L[a]), (n1, single1, e0, t0, s0, 0.0)):
+            src = nodes[single]
+            if not len(src):
+                continue
+            if (on_plane[src].sum(axis=1) > 1).any():
+                raise TraceMismatch(f"a trace node on a box edge has no partner across x_{a}")
+            j, par = _nearest_segment(points[src][:, other], points[e[:, 0]][:, other], points[e[:, 1]][:, other])
+            new = np.arange(len(points), len(points) + len(src))
+            q = points[src].copy()
+            q[:, a] = value
+            points = np.vstack([points, q])
+            on_plane = np.vstack([on_plane, on_plane[src]])
+            for i, k in zip(src, new):
+                parent.append(int(k))
+                parent[int(k)] = _find(parent, int(i))
+            inserts += list(zip(t[j].tolist(), s[j].tolist(), par.tolist(), new.tolist()))
+        tris = _split_boundary_edges(tris, inserts)
+    # one position per class of periodic copies: the other coordinates of its first member
+    roots = np.array([_find(parent, i) for i in range(len(points))])
+    for k in range(3):
+        free = ~(on_plane[:, k] & np.isin(k, axes))
+        points[free, k] = points[roots[free], k]
+    for a in axes:
+        e0 = trace(a, 0.0)[0]
+        e1 = trace(a, L[a])[0]
+        key = lambda e: {tuple(sorted(map(tuple, np.delete(points[pair], a, axis=1).tolist()))) for pair in e}  # noqa: E731
+        if key(e0) != key(e1):
+            raise TraceMismatch(f"the traces on x_{a} = 0 and x_{a} = L still differ after matching")
+    return points, tris, on_plane
+
+
+def _split_boundary_edges(tris: np.ndarray, inserts: list) -> np.ndarray:
+    """Split boundary edge `slot` of triangle t at the nodes inserted there (ordered by parameter):
+    (i, j, k) -> (i, m1, k), (m1, m2, k), ..., (mr, j, k)."""
+    if not inserts:
+        return tris
+    by_tri: dict[int, list] = {}
+    for t, s, par, m in inserts:
+        by_tri.setdefault(t, []).append((s, par, m))
+    out, drop = [], []
+    for t, items in by_tri.items():
+        if len({s for s, _, _ in items}) > 1:
+            raise TraceMismatch("a triangle with two edges on one trace (a flat piece in the box plane)")
+        s = items[0][0]
+        i, j, k = tris[t, s], tris[t, (s + 1) % 3], tris[t, (s + 2) % 3]
+        chain = [i] + [m for _, _, m in sorted(items, key=lambda x: x[1])] + [j]
+        out += [[chain[q], chain[q + 1], k] for q in range(len(chain) - 1)]
+        drop.append(t)
+    keep = np.ones(len(tris), bool)
+    keep[drop] = False
+    return np.vstack([tris[keep], np.asarray(out, np.int64)])

@@ -25,6 +25,7 @@ from jaxmesh._contours import (
     resample_polyline,
     split_segments,
 )
+from jaxmesh._errors import MeshingError
 from jaxmesh._mesh2d import Mesh2DConfig, mesh_2d, mesh_file_2d
 from jaxmesh._quality import cell_quality, min_angles, signed_volumes
 from jaxmesh._validate import validate
@@ -272,6 +273,11 @@ def test_bad_inputs():
     ms3 = Microstructure.from_functions([sphere_sdf(jnp.array([0.5, 0.5, 0.5]), 0.3)], (1.0, 1.0, 1.0), (16, 16, 16))
     with pytest.raises(ValueError, match="expected a 2D microstructure"):
         mesh_2d(ms3, h=0.05)
+    y = np.arange(32) / 32
+    band = np.broadcast_to(np.abs(y - 0.5) - 0.15, (32, 32))  # a band across the box along x: it percolates
+    with pytest.raises(MeshingError, match="own periodic image along axis 0") as err:
+        mesh_2d(Microstructure.from_levelset(np.ascontiguousarray(band)), h=0.05)
+    assert not err.value.frame_dependent
 
 
 @pytest.mark.parametrize("interior", ["hex", "quadtree"])

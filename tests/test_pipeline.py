@@ -184,30 +184,34 @@ def test_box_shaped_inclusion_from_a_sampled_level_set():
     assert 0.95 * 0.4 * 0.3 * 0.36 < inside < 0.4 * 0.3 * 0.36
 
 
-def test_an_inclusion_reaching_its_own_image_is_refused_before_the_size_function():
-    """An endless fibre along x (a percolating inclusion) has no closed surface in one periodic copy:
-    a clear error naming it, raised before the size function."""
-    from jaxmesh._errors import MeshingError
-
+def test_an_endless_fibre_meshes_periodic_and_conforming():
+    """An endless fibre along x (it reaches its own periodic image: it percolates) beside a ball that
+    crosses the box edge y = z = 0. The fibre's surface is closed off beyond the box, cut by x = 0 and
+    x = L, and its two traces there made translates: the mesh is valid (periodic, conforming) and the
+    fibre's cells fill the cylinder."""
     x = np.arange(24) / 24
     _, y, z = np.meshgrid(x, x, x, indexing="ij")
     fibre = np.hypot(y - 0.5, z - 0.5) - 0.2
-    ball = np.sqrt((x[:, None, None] - 0.5) ** 2 + (y - 0.1) ** 2 + (z - 0.1) ** 2) - 0.08
+    dy, dz = y - 0.05, z - 0.05
+    dy, dz = dy - np.round(dy), dz - np.round(dz)
+    ball = np.sqrt((x[:, None, None] - 0.5) ** 2 + dy**2 + dz**2) - 0.12
     ms = Microstructure.from_levelset(np.minimum(fibre, ball))
-    stages = []
-    with pytest.raises(MeshingError, match="own periodic image") as err:
-        mesh_rve(ms, MeshConfig(iis=0.1), progress=stages.append)
-    assert err.value.inclusion == next(i.id for i in ms.inclusions if i.upper[0] - i.lower[0] > 0.99)
-    assert any("] input" in s for s in stages) and not any("] size" in s for s in stages)
+    fibre_id = next(i.id for i in ms.inclusions if i.upper[0] - i.lower[0] > 0.99)
+    mesh = mesh_rve(ms, MeshConfig(iis=0.1))
+    _check(mesh, ms)
+    vol = signed_volumes(mesh.points, mesh.cells)
+    assert vol[mesh.inclusion_id == fibre_id].sum() == pytest.approx(np.pi * 0.2**2, rel=0.03)
+    # the fibre's nodes on x = 0 and on x = 1 are one node set under the translation
+    pairs = mesh.periodic_pairs[0]
+    on_fibre = np.isin(np.arange(mesh.n_points), mesh.cells[mesh.inclusion_id == fibre_id])
+    np.testing.assert_array_equal(on_fibre[pairs[:, 0]], on_fibre[pairs[:, 1]])
+    assert on_fibre[pairs[:, 0]].sum() > 20
 
 
-def test_a_field_negative_in_the_matrix_is_refused_with_a_sign_hint_and_no_retry(tmp_path):
-    """Three spheres given with the opposite sign: the 'inclusion' is the matrix around them. Its
-    bounds (from the interface crossings) stop short of the box, but it has samples in every grid
-    plane: it meets its own image, refused before the size function; the input line says the
-    inclusions fill most of the box and names the sign convention; a second, rolled try cannot help."""
-    from jaxmesh._errors import MeshingError
-
+def test_a_field_negative_in_the_matrix_meshes_its_matrix_and_says_so(tmp_path):
+    """Three spheres given with the opposite sign: the 'inclusion' is the matrix around them, which
+    percolates along every axis. It meshes (valid, periodic), and the input line says that the
+    inclusions fill most of the box and names the sign convention."""
     x = np.arange(24) / 24
     X = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1)
     phi = np.full((24,) * 3, np.inf)
@@ -217,10 +221,11 @@ def test_a_field_negative_in_the_matrix_is_refused_with_a_sign_hint_and_no_retry
         phi = np.minimum(phi, np.linalg.norm(d, axis=-1) - 0.17)
     np.save(tmp_path / "inside_out.npy", -phi)
     lines = []
-    with pytest.raises(MeshingError, match="own periodic image"):
-        mesh_rve(tmp_path / "inside_out.npy", MeshConfig(iis=0.1), progress=lines.append)
+    mesh = mesh_rve(tmp_path / "inside_out.npy", MeshConfig(iis=0.1), progress=lines.append)
     assert "fill 9" in lines[0] and "pass -phi" in lines[0]
-    assert not any("retry" in line for line in lines) and not any("] size" in line for line in lines)
+    assert mesh.metadata["validation"]["ok"]
+    vol = signed_volumes(mesh.points, mesh.cells)
+    assert vol[mesh.inclusion_id == 1].sum() == pytest.approx(1 - 3 * sphere_volume(0.17), rel=0.01)
     np.save(tmp_path / "right.npy", phi)
     with_sign = []
     with pytest.raises(ValueError, match="max_elements"):

@@ -184,3 +184,65 @@ def test_config_validation():
         SurfaceConfig(trace_grading=0.0)
     with pytest.raises(ValueError, match="h: expected"):
         as_size_fn(-1.0, (1.0, 1.0, 1.0))
+
+
+def _tube(counts, radius=0.2, box=(1.0, 1.0, 1.0), seed=0):
+    """An open tube along x from x = 0 to x = L: rings of counts[k] nodes (each turned at random),
+    consecutive rings zipped by angle; the end rings are the traces on the two box planes."""
+    rng = np.random.default_rng(seed)
+    xs = np.linspace(0.0, box[0], len(counts))
+    rings, points = [], []
+    for x, m in zip(xs, counts):
+        angle = np.sort(rng.uniform(0, 2 * np.pi / m) + 2 * np.pi * np.arange(m) / m)
+        rings.append((len(points) + np.arange(m), angle))
+        points += [[x, 0.5 + radius * np.cos(t), 0.5 + radius * np.sin(t)] for t in angle]
+    tris = []
+    for (ia, ta), (ib, tb) in zip(rings[:-1], rings[1:]):
+        i = j = 0
+        while i < len(ia) or j < len(ib):
+            a0, b0 = ia[i % len(ia)], ib[j % len(ib)]
+            if j >= len(ib) or (i < len(ia) and ta[(i + 1) % len(ia)] + 2 * np.pi * ((i + 1) // len(ia))
+                                < tb[(j + 1) % len(ib)] + 2 * np.pi * ((j + 1) // len(ib))):
+                tris.append([a0, ia[(i + 1) % len(ia)], b0])
+                i += 1
+            else:
+                tris.append([a0, ib[(j + 1) % len(ib)], b0])
+                j += 1
+    on_plane = np.zeros((len(points), 3), bool)
+    on_plane[rings[0][0], 0] = on_plane[rings[-1][0], 0] = True
+    return np.array(points), np.array(tris, np.int64), on_plane
+
+
+def _oriented_manifold(tris):
+    directed = {(int(a), int(b)) for t in tris for a, b in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0]))}
+    assert len(directed) == 3 * len(tris)  # no directed edge twice: one orientation, no fold-over
+    return directed
+
+
+def test_match_opposite_traces_pairs_and_splits_until_the_traces_are_translates():
+    from jaxmesh._surface_ops import boundary_edges, match_opposite_traces
+
+    for counts, seed in (([12, 13, 14, 15], 0), ([16, 12, 12, 11], 1), ([9, 9, 9], 2)):
+        points, tris, on_plane = _tube(counts, seed=seed)
+        _oriented_manifold(tris)
+        p, t, flags = match_opposite_traces(points, tris, on_plane, (1.0, 1.0, 1.0), (0,))
+        _oriented_manifold(t)
+        edges = boundary_edges(t, len(p))[0]
+        ends = [{tuple(sorted(map(tuple, p[e][:, 1:].tolist()))) for e in edges if (p[e, 0] == x).all()}
+                for x in (0.0, 1.0)]
+        assert ends[0] == ends[1] and len(ends[0]) >= max(counts[0], counts[-1])
+        assert flags[np.unique(edges), 0].all()
+        # every trace node stays on the circle; no triangle degenerates
+        r = np.hypot(p[np.unique(edges), 1] - 0.5, p[np.unique(edges), 2] - 0.5)
+        np.testing.assert_allclose(r, 0.2, atol=1e-12)
+        area = np.linalg.norm(np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]]), axis=1)
+        assert area.min() > 1e-4
+
+
+def test_match_opposite_traces_refuses_a_surface_that_ends_on_one_plane_only():
+    from jaxmesh._surface_ops import TraceMismatch, match_opposite_traces
+
+    points, tris, on_plane = _tube([10, 10, 10])
+    on_plane[points[:, 0] == 1.0, 0] = False  # as if the far end were not on the box plane
+    with pytest.raises(TraceMismatch, match="only"):
+        match_opposite_traces(points, tris, on_plane, (1.0, 1.0, 1.0), (0,))
