@@ -199,11 +199,18 @@ def level_set_gradient(phi_fn, points: np.ndarray) -> np.ndarray:
     return project(phi_fn, points, np.ones((len(points), 3), bool), 0)[2]
 
 
-def percolating_axes(inclusion, box) -> tuple[int, ...]:
-    """The axes along which a periodic inclusion's bounds span the box: it reaches its own
-    periodic image there (a percolating network, an endless fibre)."""
-    span = (np.asarray(inclusion.upper, float) - np.asarray(inclusion.lower, float)) / np.asarray(box, float)
-    return tuple(int(a) for a in np.flatnonzero(span > 0.999))
+def capped_axes(lower, upper, box, step: float, margin: float) -> tuple[int, ...]:
+    """The axes along which a periodic inclusion is meshed closed off beyond the box (`BoxCapped`)
+    and cut at x = 0 and L, its opposite traces then paired: where it reaches its own periodic image
+    (a percolating network, an endless fibre) or comes within 0.05 steps of it (no marching-cubes
+    window around it holds one copy only); and then also where a window with `margin` around its
+    bounds would reach into its next copy. Elsewhere its closed unwrapped surface is cut and wrapped."""
+    L = np.asarray(box, float)
+    gap = L - (np.asarray(upper, float) - np.asarray(lower, float))
+    capped = (gap < 0.001 * L) | (gap < 0.1 * step)
+    if capped.any():
+        capped |= gap < 2 * margin + 1e-6 * L
+    return tuple(int(a) for a in np.flatnonzero(capped))
 
 
 def _periodic_traces(points, tris, on_plane, phi_fn, box, axes, inclusion_id: int, config: SurfaceConfig):
@@ -585,15 +592,15 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
     step = min(config.mc_step * h0, float(np.min(upper - lower)) / 4)
     # closed off beyond the box: every axis when not periodic; the axes along which a periodic
     # inclusion reaches its own image (it percolates), where no closed surface exists
-    capped = tuple(range(3)) if not periodic else percolating_axes(inclusion, box)
+    capped = tuple(range(3)) if not periodic else capped_axes(lower, upper, box, step, 2.5 * config.mc_step * h0)
     if capped:
         cap = 2.0 * step
         phi_fn = BoxCapped(phi_fn, tuple(float(v) for v in L), jnp.asarray(cap), capped)
         # the surface of an inclusion the box cuts goes on beyond it (a grid one as an extrusion of
-        # the border samples) up to the cap: the window reaches the cap
+        # the border samples, a periodic one as its next copy) up to the cap: the window reaches the cap
         inner = np.isin(np.arange(3), capped)
-        lower = np.where(inner & (lower < cap), -cap, lower)
-        upper = np.where(inner & (upper > L - cap), L + cap, upper)
+        lower = np.where(inner & ((lower < cap) | periodic), -cap, lower)
+        upper = np.where(inner & ((upper > L - cap) | periodic), L + cap, upper)
         if (upper <= lower).any():
             raise MeshingError("surfaces", "the inclusion lies outside the box", inclusion.id)
     for _ in range(_MC_ATTEMPTS):
