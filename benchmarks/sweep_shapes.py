@@ -2,7 +2,8 @@
 
 Builds each input in OUT_DIR (tori, rounded cubes, finite cylinders, a labelled image, a
 non-cubic box, a sphere near its images, spheres on a box corner / edge, Gaussian excursion
-sets from `jaxmesh generate --kind grf`), runs `jaxmesh mesh`
+sets from `jaxmesh generate --kind grf`, and percolating inclusions: endless fibres, a gyroid
+network, percolating excursion sets), runs `jaxmesh mesh`
 on it and prints one line per case. With --no-periodic the same fields are meshed as plain boxes
 (`jaxmesh mesh --no-periodic`: the box cuts the inclusions, each piece one inclusion).
     .venv/bin/python benchmarks/sweep_shapes.py [OUT_DIR] [--only NAME ...] [--build-only] [--no-periodic]
@@ -212,6 +213,67 @@ def case_trace_by_edge(out: Path, n=64):
     return p, [], "r 0.2, its trace on x = 0 0.38 steps from the edge x = z = 0"
 
 
+# --- percolating inclusions: each reaches its own periodic image ----------------------------------
+
+def _periodic_min(dist, x, box=(1.0, 1.0, 1.0)) -> np.ndarray:
+    """min over the 27 lattice shifts of dist(x + shift): exact for shapes that are not min-image local."""
+    shifts = np.stack(np.meshgrid(*[(-L, 0.0, L) for L in box], indexing="ij"), -1).reshape(-1, 3)
+    return np.min([dist(x + s) for s in shifts], axis=0)
+
+
+def _line_distance(x, point, direction) -> np.ndarray:
+    u = np.asarray(direction, float) / np.linalg.norm(direction)
+    d = x - np.asarray(point, float)
+    return np.linalg.norm(d - (d @ u)[..., None] * u, axis=-1)
+
+
+def case_fibre(out: Path, n=32):
+    phi = _periodic_min(lambda x: _line_distance(x, (0.5, 0.5, 0.0), (0, 0, 1)) - 0.2, _grid(n))
+    np.save(p := out / "fibre.npy", phi)
+    return p, [], "endless straight fibre along z, r 0.2"
+
+
+def case_fibre_edge(out: Path, n=40):
+    """A wavy fibre along the box edge x = y = 0: cut by four box faces along its whole length."""
+    x = _grid(n)
+    wave = 0.05 * np.sin(2 * np.pi * x[..., 2])
+    d = minimum_image(x[..., :2] - np.stack([wave, 0 * wave], -1), np.ones(2))
+    np.save(p := out / "fibre_edge.npy", np.linalg.norm(d, axis=-1) - 0.15)
+    return p, [], "endless wavy fibre on the edge x = y = 0, r 0.15"
+
+
+def case_fibre_diagonal(out: Path, n=40):
+    phi = _periodic_min(lambda x: _line_distance(x, (0.5, 0.5, 0.5), (1, 0, 1)) - 0.15, _grid(n))
+    np.save(p := out / "fibre_diagonal.npy", phi)
+    return p, [], "endless fibre along (1, 0, 1), r 0.15: percolates along x and z"
+
+
+def case_fibres_crossing(out: Path, n=40):
+    x = _grid(n)
+    along_z = _periodic_min(lambda x: _line_distance(x, (0.25, 0.25, 0.0), (0, 0, 1)) - 0.12, x)
+    along_x = _periodic_min(lambda x: _line_distance(x, (0.0, 0.75, 0.5), (1, 0, 0)) - 0.12, x)
+    np.save(p := out / "fibres_crossing.npy", np.minimum(along_z, along_x))
+    return p, [], "two endless fibres, along z and along x, r 0.12"
+
+
+def case_gyroid(out: Path, n=40):
+    t = 2 * np.pi * _grid(n)
+    s, c = np.sin(t), np.cos(t)
+    g = s[..., 0] * c[..., 1] + s[..., 1] * c[..., 2] + s[..., 2] * c[..., 0]
+    np.save(p := out / "gyroid.npy", (g - 0.4) / (2 * np.pi))
+    return p, [], "gyroid network g < 0.4, one inclusion percolating along x, y, z"
+
+
+def _percolating_excursion(seed):
+    def case(out: Path):
+        p = out / f"grf_perc_s{seed}.npz"
+        cmd = [str(JAXMESH), "generate", str(p), "--kind", "grf", "--volume-fraction", "0.2",
+               "--correlation-length", "0.15", "--grid", "48", "--seed", str(seed)]
+        subprocess.run(cmd, check=True, capture_output=True, text=True, timeout=TIMEOUT)
+        return p, [], f"generate grf 20 % l 0.15 48^3 seed {seed} (percolating blobs)"
+    return case
+
+
 CASES = {
     "torus": case_torus,
     "torus_corner": case_torus_corner,
@@ -229,6 +291,13 @@ CASES = {
     "trace_by_edge": case_trace_by_edge,
     "grf_s1": _excursion(1),
     "grf_s2": _excursion(2),
+    "fibre": case_fibre,
+    "fibre_edge": case_fibre_edge,
+    "fibre_diagonal": case_fibre_diagonal,
+    "fibres_crossing": case_fibres_crossing,
+    "gyroid": case_gyroid,
+    "grf_perc_s1": _percolating_excursion(1),
+    "grf_perc_s2": _percolating_excursion(2),
 }
 
 
