@@ -377,6 +377,75 @@ def _periodic_pairs(reg: _Registry, box) -> dict[int, np.ndarray]:
 
 
 _FLAT_SLOPE = 0.5  # |grad phi| below this at an intersection: blame the field's saddle, not thinness
+_RESAMPLE_SCALES = (0.8, 1.25)  # marching-cubes steps (x the default) tried on inclusions whose triangles cross
+
+
+def _assemble(microstructure, surfaces: dict, h_fn, config: SurfaceConfig, t0: float) -> SurfaceMesh:
+    """The inclusion surfaces (id -> mesh_inclusion output) registered into one node set, plus the
+    box faces meshed against their traces."""
+    box, periodic = microstructure.box, microstructure.periodic
+    reg = _Registry()
+    tris, sides, kinds = [], [], []
+    for inc in microstructure.inclusions:
+        out = surfaces[inc.id]
+        t = reg.add(out["points"], inc.id)[out["triangles"]]
+        # pieces cut at a box edge can share a point: (a, a, b) has zero area, and dropping it
+        # leaves the edge a-b in its two neighbours
+        t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])]
+        tris.append(t)
+        sides.append(np.tile([inc.id, 0], (len(t), 1)))
+        kinds.append(np.full(len(t), INTERFACE))
+    t1 = time.perf_counter()
+    iface = np.vstack(tris) if tris else np.zeros((0, 3), np.int64)
+    P = reg.array()
+    tnodes, tsp = trace_spacing(P, iface, box)
+    line_size = _line_size(h_fn, box, P[tnodes], tsp, config.trace_grading, periodic)
+    # every box edge from the interface nodes alone, before any face adds nodes to it
+    if periodic:
+        masters = [_edge_values(P, a, box, line_size) for a in range(3)]
+        edge_vals = lambda line_axis, at: masters[line_axis]  # noqa: E731
+    else:
+        L = np.asarray(box, float)
+        edges = {}
+        for a in range(3):
+            o1, o2 = (k for k in range(3) if k != a)
+            for v1 in (0.0, L[o1]):
+                for v2 in (0.0, L[o2]):
+                    edges[a, v1, v2] = _edge_values(P, a, box, line_size, {o1: v1, o2: v2})
+        edge_vals = lambda line_axis, at: edges[(line_axis, *(at[k] for k in sorted(at)))]  # noqa: E731
+    for a in range(3):
+        for side in ((0.0,) if periodic else (0.0, float(box[a]))):
+            ft, fs = _mesh_face(a, reg, iface, edge_vals, microstructure, h_fn, config, side)
+            tris.append(ft)
+            sides.append(fs)
+            kinds.append(np.full(len(ft), BOX_FACE))
+    t2 = time.perf_counter()
+    mesh = SurfaceMesh(
+        points=reg.array(), triangles=np.vstack(tris), sides=np.vstack(sides), kind=np.concatenate(kinds),
+        node_inclusion=np.asarray(reg.inclusion, np.int64), box=box,
+        periodic_pairs=_periodic_pairs(reg, box) if periodic else {},
+        metadata={"n_inclusions": len(microstructure.inclusions), "time_interfaces": t1 - t0, "time_faces": t2 - t1},
+        periodic=periodic,
+    )
+    return mesh
+
+
+def _raise_intersections(microstructure, mesh: SurfaceMesh, bad: np.ndarray, resampled: dict):
+    ids = np.unique(mesh.sides[bad.reshape(-1)])
+    x = tuple(round(float(v), 4) for v in mesh.points[mesh.triangles[bad[0]]].reshape(-1, 3).mean(axis=0))
+    slope = _gradient_norm(microstructure, np.asarray(x))
+    cause = ("seen where an inclusion is thinner than about a grid step (a membrane or a filament of the "
+             "field); hint: sample the field finer or smooth it, or a smaller iis / h_max")
+    if slope < _FLAT_SLOPE:
+        cause = (f"the level set is nearly flat there (|grad phi| = {slope:.2g}; a distance has 1): a saddle "
+                 "of the field close to zero, two lobes about to merge or a neck about to pinch, whose zero "
+                 "set the grid does not pin down; hint: --redistance (MeshConfig(redistance=True)) makes the "
+                 "field a distance to its zero set first; or smooth the field, or move its threshold off "
+                 "the saddle")
+    tried = (f" (inclusions {sorted(resampled)} also resampled at {list(_RESAMPLE_SCALES)} of the marching-cubes "
+             "step)" if resampled else "")
+    raise MeshingError("surfaces", f"{len(bad)} intersecting triangle pairs (regions {ids.tolist()}), the "
+                       f"first near x = {x}{tried}; {cause}", frame_dependent=slope >= _FLAT_SLOPE)
 
 
 def _gradient_norm(microstructure, x: np.ndarray) -> float:
@@ -418,65 +487,31 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig())
     box, periodic = microstructure.box, microstructure.periodic
     h_fn = as_size_fn(h, box, periodic)
     t0 = time.perf_counter()
-    reg = _Registry()
-    tris, sides, kinds = [], [], []
-    for inc in microstructure.inclusions:
-        out = mesh_inclusion(inc, h_fn, box, config, periodic)
-        t = reg.add(out["points"], inc.id)[out["triangles"]]
-        # pieces cut at a box edge can share a point: (a, a, b) has zero area, and dropping it
-        # leaves the edge a-b in its two neighbours
-        t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])]
-        tris.append(t)
-        sides.append(np.tile([inc.id, 0], (len(t), 1)))
-        kinds.append(np.full(len(t), INTERFACE))
-    t1 = time.perf_counter()
-    iface = np.vstack(tris) if tris else np.zeros((0, 3), np.int64)
-    P = reg.array()
-    tnodes, tsp = trace_spacing(P, iface, box)
-    line_size = _line_size(h_fn, box, P[tnodes], tsp, config.trace_grading, periodic)
-    # every box edge from the interface nodes alone, before any face adds nodes to it
-    if periodic:
-        masters = [_edge_values(P, a, box, line_size) for a in range(3)]
-        edge_vals = lambda line_axis, at: masters[line_axis]  # noqa: E731
-    else:
-        L = np.asarray(box, float)
-        edges = {}
-        for a in range(3):
-            o1, o2 = (k for k in range(3) if k != a)
-            for v1 in (0.0, L[o1]):
-                for v2 in (0.0, L[o2]):
-                    edges[a, v1, v2] = _edge_values(P, a, box, line_size, {o1: v1, o2: v2})
-        edge_vals = lambda line_axis, at: edges[(line_axis, *(at[k] for k in sorted(at)))]  # noqa: E731
-    for a in range(3):
-        for side in ((0.0,) if periodic else (0.0, float(box[a]))):
-            ft, fs = _mesh_face(a, reg, iface, edge_vals, microstructure, h_fn, config, side)
-            tris.append(ft)
-            sides.append(fs)
-            kinds.append(np.full(len(ft), BOX_FACE))
-    t2 = time.perf_counter()
-    mesh = SurfaceMesh(
-        points=reg.array(), triangles=np.vstack(tris), sides=np.vstack(sides), kind=np.concatenate(kinds),
-        node_inclusion=np.asarray(reg.inclusion, np.int64), box=box,
-        periodic_pairs=_periodic_pairs(reg, box) if periodic else {},
-        metadata={"n_inclusions": len(microstructure.inclusions), "time_interfaces": t1 - t0, "time_faces": t2 - t1},
-        periodic=periodic,
-    )
-    if config.check_intersections:
+    surfaces = {inc.id: mesh_inclusion(inc, h_fn, box, config, periodic) for inc in microstructure.inclusions}
+    mesh = _assemble(microstructure, surfaces, h_fn, config, t0)
+    resampled = {}
+    for scale in (*_RESAMPLE_SCALES, None):
+        if not config.check_intersections:
+            break
+        t2 = time.perf_counter()
         bad = intersecting_pairs(mesh.points, mesh.triangles)
         mesh.metadata["time_intersections"] = time.perf_counter() - t2
-        if len(bad):
-            ids = np.unique(mesh.sides[bad.reshape(-1)])
-            x = tuple(round(float(v), 4) for v in mesh.points[mesh.triangles[bad[0]]].reshape(-1, 3).mean(axis=0))
-            slope = _gradient_norm(microstructure, np.asarray(x))
-            cause = ("seen where an inclusion is thinner than about a grid step (a membrane or a filament of the "
-                     "field); hint: sample the field finer or smooth it, or a smaller iis / h_max")
-            if slope < _FLAT_SLOPE:
-                cause = (f"the level set is nearly flat there (|grad phi| = {slope:.2g}; a distance has 1): a saddle "
-                         "of the field close to zero, two lobes about to merge or a neck about to pinch, whose zero "
-                         "set the grid does not pin down; hint: --redistance (MeshConfig(redistance=True)) makes the "
-                         "field a distance to its zero set first; or smooth the field, or move its threshold off "
-                         "the saddle")
-            raise MeshingError("surfaces", f"{len(bad)} intersecting triangle pairs (regions {ids.tolist()}), the "
-                               f"first near x = {x}; {cause}", frame_dependent=slope >= _FLAT_SLOPE)
+        if not len(bad):
+            break
+        # the marching-cubes sampling decides how a surface passes a saddle of the field near
+        # zero; another sampling of the inclusions whose own triangles cross often passes clean
+        crossing = np.unique(mesh.sides[bad.reshape(-1)][mesh.kind[bad.reshape(-1)] == INTERFACE, 0])
+        if scale is None or not len(crossing):
+            _raise_intersections(microstructure, mesh, bad, resampled)
+        resampled.update({int(i): scale for i in crossing})
+        resampling = dataclasses.replace(config, mc_step=config.mc_step * scale)
+        for inc in microstructure.inclusions:
+            if inc.id in crossing:
+                try:
+                    surfaces[inc.id] = mesh_inclusion(inc, h_fn, box, resampling, periodic)
+                except MeshingError:
+                    pass  # that sampling fails otherwise: keep the last surface, try the next one
+        mesh = _assemble(microstructure, surfaces, h_fn, config, t0)
+    mesh.metadata["resampled_inclusions"] = resampled
     mesh.metadata["n_self_intersections"] = 0 if config.check_intersections else None
     return mesh

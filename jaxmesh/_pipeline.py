@@ -364,7 +364,9 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
         _check_element_budget(config, predicted, float(values.min()))
 
     surface = mesh_surfaces(ms, h_jax)
-    t = stage("surfaces", t, f"{surface.n_points} nodes, {surface.n_triangles} triangles")
+    resampled = surface.metadata.get("resampled_inclusions") or {}
+    note = f"; inclusions {sorted(resampled)} sampled again (their triangles crossed)" if resampled else ""
+    t = stage("surfaces", t, f"{surface.n_points} nodes, {surface.n_triangles} triangles{note}")
 
     interior = _interior_nodes(ms, h_np, config)
     if interior is not None:

@@ -174,3 +174,46 @@ def test_gradient_norm_tells_a_saddle_of_the_field_from_a_distance():
     assert _gradient_norm(ms, np.array([0.5, 0.5, 0.5])) < 0.1 * _FLAT_SLOPE
     far = float(ms.phi(np.array([[0.175, 0.5, 0.5]]))[0])
     assert abs(far) < 0.01 and 0.9 < _gradient_norm(ms, np.array([0.175, 0.5, 0.5])) < 1.1
+
+
+def _crossing_at_default_step(monkeypatch, crossing_steps):
+    """mesh_inclusion whose sphere surface crosses itself when sampled at an mc_step in crossing_steps:
+    one node pushed through to the far side, as a fold at a saddle of a sampled field comes out."""
+    import jaxmesh._faces as faces
+
+    real = faces.mesh_inclusion
+    calls = []
+
+    def fake(inc, h_fn, box, config, periodic):
+        calls.append(config.mc_step)
+        out = real(inc, h_fn, box, config, periodic)
+        if config.mc_step in crossing_steps:
+            pts = out["points"].copy()
+            centre = pts.mean(axis=0)
+            i = int(np.argmax(pts[:, 0]))
+            pts[i] = 2 * centre - pts[i]  # through the centre to the opposite side of the sphere
+            out = {**out, "points": pts}
+        return out
+
+    monkeypatch.setattr(faces, "mesh_inclusion", fake)
+    return calls
+
+
+def test_an_inclusion_whose_triangles_cross_is_sampled_again(monkeypatch):
+    calls = _crossing_at_default_step(monkeypatch, {1.0})
+    ms = Microstructure.from_functions([sphere_sdf([0.5, 0.5, 0.5], 0.2)], (1.0, 1.0, 1.0), (32, 32, 32))
+    m = mesh_surfaces(ms, 0.05)
+    assert calls == [1.0, 0.8]
+    assert m.metadata["resampled_inclusions"] == {1: 0.8}
+    assert len(intersecting_pairs(m.points, m.triangles)) == 0
+
+
+def test_crossing_triangles_under_every_sampling_are_refused_with_the_samplings_tried(monkeypatch):
+    from jaxmesh._errors import MeshingError
+
+    calls = _crossing_at_default_step(monkeypatch, {1.0, 0.8, 1.25})
+    ms = Microstructure.from_functions([sphere_sdf([0.5, 0.5, 0.5], 0.2)], (1.0, 1.0, 1.0), (32, 32, 32))
+    with pytest.raises(MeshingError, match=r"intersecting triangle pairs .*inclusions \[1\] also resampled at "
+                                           r"\[0.8, 1.25\] of the marching-cubes step"):
+        mesh_surfaces(ms, 0.05)
+    assert calls == [1.0, 0.8, 1.25]
