@@ -179,13 +179,13 @@ def case_ellipsoid_box(out: Path):
     return p, [], "generate ellipsoid box 1.5x1x0.8 seed 5"
 
 
-def _excursion(seed):
+def _excursion(seed, fraction="0.06", length="0.06", grid="64", name="grf", note="irregular blobs"):
     def case(out: Path):
-        p = out / f"grf_s{seed}.npz"
-        cmd = [str(JAXMESH), "generate", str(p), "--kind", "grf", "--volume-fraction", "0.06",
-               "--correlation-length", "0.06", "--grid", "64", "--seed", str(seed)]
+        p = out / f"{name}_s{seed}.npz"
+        cmd = [str(JAXMESH), "generate", str(p), "--kind", "grf", "--volume-fraction", fraction,
+               "--correlation-length", length, "--grid", grid, "--seed", str(seed)]
         subprocess.run(cmd, check=True, capture_output=True, text=True, timeout=TIMEOUT)
-        return p, [], f"generate grf 6 % l 0.06 64^3 seed {seed} (irregular blobs)"
+        return p, [], f"generate grf {float(fraction):.0%} l {length} {grid}^3 seed {seed} ({note})"
     return case
 
 
@@ -227,10 +227,12 @@ def _line_distance(x, point, direction) -> np.ndarray:
     return np.linalg.norm(d - (d @ u)[..., None] * u, axis=-1)
 
 
-def case_fibre(out: Path, n=32):
-    phi = _periodic_min(lambda x: _line_distance(x, (0.5, 0.5, 0.0), (0, 0, 1)) - 0.2, _grid(n))
-    np.save(p := out / "fibre.npy", phi)
-    return p, [], "endless straight fibre along z, r 0.2"
+def _straight_fibre(name, point, direction, r, n, note):
+    def case(out: Path):
+        phi = _periodic_min(lambda x: _line_distance(x, point, direction) - r, _grid(n))
+        np.save(p := out / f"{name}.npy", phi)
+        return p, [], note
+    return case
 
 
 def case_fibre_edge(out: Path, n=40):
@@ -240,12 +242,6 @@ def case_fibre_edge(out: Path, n=40):
     d = minimum_image(x[..., :2] - np.stack([wave, 0 * wave], -1), np.ones(2))
     np.save(p := out / "fibre_edge.npy", np.linalg.norm(d, axis=-1) - 0.15)
     return p, [], "endless wavy fibre on the edge x = y = 0, r 0.15"
-
-
-def case_fibre_diagonal(out: Path, n=40):
-    phi = _periodic_min(lambda x: _line_distance(x, (0.5, 0.5, 0.5), (1, 0, 1)) - 0.15, _grid(n))
-    np.save(p := out / "fibre_diagonal.npy", phi)
-    return p, [], "endless fibre along (1, 0, 1), r 0.15: percolates along x and z"
 
 
 def case_fibres_crossing(out: Path, n=40):
@@ -262,16 +258,6 @@ def case_gyroid(out: Path, n=40):
     g = s[..., 0] * c[..., 1] + s[..., 1] * c[..., 2] + s[..., 2] * c[..., 0]
     np.save(p := out / "gyroid.npy", (g - 0.4) / (2 * np.pi))
     return p, [], "gyroid network g < 0.4, one inclusion percolating along x, y, z"
-
-
-def _percolating_excursion(seed):
-    def case(out: Path):
-        p = out / f"grf_perc_s{seed}.npz"
-        cmd = [str(JAXMESH), "generate", str(p), "--kind", "grf", "--volume-fraction", "0.2",
-               "--correlation-length", "0.15", "--grid", "48", "--seed", str(seed)]
-        subprocess.run(cmd, check=True, capture_output=True, text=True, timeout=TIMEOUT)
-        return p, [], f"generate grf 20 % l 0.15 48^3 seed {seed} (percolating blobs)"
-    return case
 
 
 CASES = {
@@ -291,13 +277,14 @@ CASES = {
     "trace_by_edge": case_trace_by_edge,
     "grf_s1": _excursion(1),
     "grf_s2": _excursion(2),
-    "fibre": case_fibre,
+    "fibre": _straight_fibre("fibre", (0.5, 0.5, 0.0), (0, 0, 1), 0.2, 32, "endless straight fibre along z, r 0.2"),
     "fibre_edge": case_fibre_edge,
-    "fibre_diagonal": case_fibre_diagonal,
+    "fibre_diagonal": _straight_fibre("fibre_diagonal", (0.5, 0.5, 0.5), (1, 0, 1), 0.15, 40,
+                                      "endless fibre along (1, 0, 1), r 0.15: percolates along x and z"),
     "fibres_crossing": case_fibres_crossing,
     "gyroid": case_gyroid,
-    "grf_perc_s1": _percolating_excursion(1),
-    "grf_perc_s2": _percolating_excursion(2),
+    "grf_perc_s1": _excursion(1, "0.2", "0.15", "48", "grf_perc", "percolating blobs"),
+    "grf_perc_s2": _excursion(2, "0.2", "0.15", "48", "grf_perc", "percolating blobs"),
 }
 
 
