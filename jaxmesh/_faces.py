@@ -489,7 +489,7 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig())
     t0 = time.perf_counter()
     surfaces = {inc.id: mesh_inclusion(inc, h_fn, box, config, periodic) for inc in microstructure.inclusions}
     mesh = _assemble(microstructure, surfaces, h_fn, config, t0)
-    resampled = {}
+    resampled, fewest = {}, None
     for scale in (*_RESAMPLE_SCALES, None):
         if not config.check_intersections:
             break
@@ -498,11 +498,13 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig())
         mesh.metadata["time_intersections"] = time.perf_counter() - t2
         if not len(bad):
             break
+        if fewest is None or len(bad) < len(fewest[1]):
+            fewest = (mesh, bad)
         # the marching-cubes sampling decides how a surface passes a saddle of the field near
         # zero; another sampling of the inclusions whose own triangles cross often passes clean
         crossing = np.unique(mesh.sides[bad.reshape(-1)][mesh.kind[bad.reshape(-1)] == INTERFACE, 0])
         if scale is None or not len(crossing):
-            _raise_intersections(microstructure, mesh, bad, resampled)
+            _raise_intersections(microstructure, *fewest, resampled)  # where the field is worst resolved
         resampled.update({int(i): scale for i in crossing})
         resampling = dataclasses.replace(config, mc_step=config.mc_step * scale)
         for inc in microstructure.inclusions:

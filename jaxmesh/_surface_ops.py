@@ -401,6 +401,7 @@ def match_opposite_traces(points, tris, on_plane, box, axes):
     points, tris, on_plane = points.copy(), tris.copy(), on_plane.copy()
     for a in axes:  # plane coordinates exactly 0 or L
         points[on_plane[:, a], a] = np.round(points[on_plane[:, a], a] / L[a]) * L[a]
+    tris = remove_trace_backtracks(points, tris, on_plane, box, axes)
     parent = list(range(len(points)))
 
     def trace(a, value):
@@ -463,6 +464,50 @@ def match_opposite_traces(points, tris, on_plane, box, axes):
         if key(e0) != key(e1):
             raise TraceMismatch(f"the traces on x_{a} = 0 and x_{a} = L still differ after matching")
     return points, tris, on_plane
+
+
+# a trace turning back at a node by over 120 degrees along an edge under half its other edge: a
+# zigzag of the cut (a smooth trace turns a few tens of degrees per segment)
+_BACKTRACK_COS, _BACKTRACK_RATIO = -0.5, 0.5
+
+
+def remove_trace_backtracks(points, tris, on_plane, box, axes, passes: int = 5) -> np.ndarray:
+    """Collapse the shorter edge at every node where a trace on a box plane x_a = 0 or L turns back
+    on itself (a fold of the surface along the plane, a fraction of a segment long): inserting the
+    opposite trace's nodes into a zigzag cannot make the two traces equal. Nodes on a box edge stay;
+    a collapse that would leave the fan around the kept node folded is skipped. Returns the triangles (collapsed nodes
+    are left unreferenced)."""
+    L = np.asarray(box, float)
+    tris = tris.copy()
+    for _ in range(passes):
+        e = boundary_edges(tris, len(points))[0]
+        drop = {}
+        for a in axes:
+            other = [k for k in range(3) if k != a]
+            for value in (0.0, L[a]):
+                ea = e[on_plane[e, a].all(axis=1) & (points[e, a] == value).all(axis=1)]
+                nxt, prv = dict(ea.tolist()), {j: i for i, j in ea.tolist()}
+                for v in nxt:
+                    u, w = prv.get(v), nxt[v]
+                    if u is None or on_plane[v].sum() > 1 or v in drop or {u, w} & drop.keys():
+                        continue
+                    d1, d2 = (points[v] - points[u])[other], (points[w] - points[v])[other]
+                    n1, n2 = np.linalg.norm(d1), np.linalg.norm(d2)
+                    if d1 @ d2 < _BACKTRACK_COS * n1 * n2 and min(n1, n2) < _BACKTRACK_RATIO * max(n1, n2):
+                        drop[v] = u if n1 < n2 else w
+        if not drop:
+            break
+        for v, keep in drop.items():
+            around = np.flatnonzero((tris == v).any(axis=1))
+            moved = np.where(tris[around] == v, keep, tris[around])
+            alive = (moved[:, 0] != moved[:, 1]) & (moved[:, 1] != moved[:, 2]) & (moved[:, 2] != moved[:, 0])
+            t = moved[alive]
+            normal = np.cross(points[t[:, 1]] - points[t[:, 0]], points[t[:, 2]] - points[t[:, 0]])
+            if (normal @ normal.sum(axis=0) <= 0).any():
+                continue
+            tris[around] = moved
+        tris = tris[(tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 2] != tris[:, 0])]
+    return tris
 
 
 def _split_boundary_edges(tris: np.ndarray, inserts: list) -> np.ndarray:

@@ -246,3 +246,26 @@ def test_match_opposite_traces_refuses_a_surface_that_ends_on_one_plane_only():
     on_plane[points[:, 0] == 1.0, 0] = False  # as if the far end were not on the box plane
     with pytest.raises(TraceMismatch, match="only"):
         match_opposite_traces(points, tris, on_plane, (1.0, 1.0, 1.0), (0,))
+
+
+def test_match_opposite_traces_straightens_a_trace_that_turns_back_on_itself():
+    """A trace node pushed just past its next neighbour (a fold of the surface along the plane, as a
+    cut of a nearly tangent surface leaves) is collapsed before the traces are paired."""
+    from jaxmesh._surface_ops import boundary_edges, match_opposite_traces
+
+    points, tris, on_plane = _tube([12, 10, 12], seed=3)
+    start = np.flatnonzero(points[:, 0] == 0.0)
+    order = boundary_edges(tris, len(points))[0]
+    nxt = {int(i): int(j) for i, j in order if i in start and j in start}
+    v = int(start[4])
+    w = nxt[v]
+    turn = lambda q: np.arctan2(points[q, 2] - 0.5, points[q, 1] - 0.5)  # noqa: E731
+    past = turn(w) + 0.05 * (turn(w) - turn(v))  # v a twentieth of a segment beyond w
+    points[v, 1:] = 0.5 + 0.2 * np.array([np.cos(past), np.sin(past)])
+    p, t, _ = match_opposite_traces(points, tris, on_plane, (1.0, 1.0, 1.0), (0,))
+    _oriented_manifold(t)
+    assert v not in t  # collapsed into w
+    edges = boundary_edges(t, len(p))[0]
+    ends = [{tuple(sorted(map(tuple, p[e][:, 1:].tolist()))) for e in edges if (p[e, 0] == x).all()}
+            for x in (0.0, 1.0)]
+    assert ends[0] == ends[1]
