@@ -79,7 +79,8 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         spanning = gen.spanning_components(phi) if args.dim == 2 else []
         if spanning:
             print(f"    note: inclusion(s) {spanning[:10]} reach their own periodic image (the set percolates): "
-                  "`jaxmesh mesh` refuses them in 2D (3D meshes them); lower --volume-fraction", flush=True)
+                  "`jaxmesh mesh` meshes them closed off at the box, their crossings of opposite edges paired; "
+                  "a lower --volume-fraction keeps the blobs apart", flush=True)
         return 0
     shape = args.kind
     if args.dim == 2:

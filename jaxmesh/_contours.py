@@ -7,6 +7,10 @@ level set is periodic, so the window may stick out of the box), with
 the lattice lines x = k Lx and y = m Ly; every piece between two crossings lies in one
 lattice cell and is translated into the box. A crossing on x = k Lx is one point on the
 master edge x = 0 and its translate on x = Lx: both arcs that meet there share it.
+An inclusion that reaches its own periodic image along an axis (a band, a channel) has no closed
+contour: its window spans the box plus a cap there (:func:`capped_values`), the loops are cut as
+above, only the pieces inside the box are kept, and their crossings of x = 0 and x = Lx, two
+copies of one periodic point, are merged (:func:`join_capped_crossings`).
 
 Section 4.5 in 2D: the box edges are meshed once on the master edges (x = 0, y = 0) between
 the crossings and corners, at spacing ~h, and copied to the opposite edges. The result is a
@@ -111,19 +115,22 @@ class Arc:
 
 
 # ----------------------------------------------------------------------------- extraction
-def window_grid(lower, upper, step: float, margin: float, box) -> tuple[np.ndarray, np.ndarray]:
+def window_grid(lower, upper, step: float, margin: float, box, capped=(), cap: float = 0.0):
     """Sample coordinates of a local window around an inclusion.
 
     Args:
         lower, upper: (2,) unwrapped bounds of the inclusion. step: sample spacing.
         margin: added on every side. box: (2,) lengths (the window must stay shorter than the box,
-            else periodic images of the inclusion would enter it).
+            else periodic images of the inclusion would enter it), except along the `capped` axes,
+            where it spans [-cap - margin, L + cap + margin] (see :func:`capped_values`).
     Returns:
         (origin (2,), shape (2,) int): samples at origin + i * step.
     """
-    lower = np.asarray(lower, dtype=float) - margin
-    upper = np.asarray(upper, dtype=float) + margin
-    if np.any(upper - lower >= np.asarray(box, dtype=float)):
+    L = np.asarray(box, dtype=float)
+    inner = np.isin(np.arange(2), capped)
+    lower = np.where(inner, -cap, np.asarray(lower, dtype=float)) - margin
+    upper = np.where(inner, L + cap, np.asarray(upper, dtype=float)) + margin
+    if np.any((upper - lower >= L) & ~inner):
         raise ValueError(
             f"expected an inclusion window shorter than the box {tuple(box)}, got extent {tuple(upper - lower)}; "
             "hint: an inclusion spanning (almost) the whole box cannot be meshed as a closed curve"
@@ -163,11 +170,69 @@ def extract_loops(values: np.ndarray, origin, step: float, inclusion_id: int) ->
     return loops
 
 
+def capped_axes_2d(lower, upper, box, margin: float) -> tuple[int, ...]:
+    """Axes along which an inclusion's window with `margin` would reach its next periodic copy (it
+    percolates there, or nearly spans the box): its contours are closed off beyond the box there."""
+    gap = np.asarray(box, float) - (np.asarray(upper, float) - np.asarray(lower, float))
+    return tuple(int(a) for a in np.flatnonzero(gap <= 2 * margin))
+
+
+def capped_values(values: np.ndarray, origin, step: float, box, capped, cap: float) -> np.ndarray:
+    """Window samples closed off beyond x_a = -cap and L + cap along the capped axes: the level set
+    of a percolating inclusion (a band, a channel) becomes closed loops whose parts in the box are
+    the band's arcs, cut at x_a = 0 and L by :func:`cut_loop` (``keep_axes``)."""
+    out = np.asarray(values, dtype=float).copy()
+    L = np.asarray(box, float)
+    for a in capped:
+        x = np.asarray(origin, float)[a] + step * np.arange(out.shape[a])
+        beyond = np.maximum(-cap - x, x - L[a] - cap)
+        shape = [1, 1]
+        shape[a] = -1
+        out = np.maximum(out, beyond.reshape(shape))
+    return out
+
+
+def join_capped_crossings(arcs: list[Arc], crossings: list[Crossing], axes, box, inclusion_id: int):
+    """The in-box arcs of capped loops end on the lines x_a = 0 and x_a = L at two crossings of one
+    periodic point; merge each such pair into one crossing (and drop the crossings no kept arc uses).
+
+    Returns:
+        (arcs, crossings) re-indexed. Raises MeshingError when a crossing on x_a = 0 has no partner
+        on x_a = L (a field that is not periodic there).
+    """
+    used = sorted({e[0] for arc in arcs if not arc.closed for e in (arc.start, arc.end)})
+    L = np.asarray(box, float)
+    target = {}
+    for a in axes:
+        ends = {0: [], 1: []}
+        for arc in arcs:
+            for c, side in (() if arc.closed else (arc.start, arc.end)):
+                if crossings[c].axis == a:
+                    ends[side].append(c)
+        on0, on1 = sorted(set(ends[0])), sorted(set(ends[1]))
+        t0 = np.array([crossings[c].t for c in on0])
+        t1 = np.array([crossings[c].t for c in on1])
+        if len(t0) != len(t1) or (len(t0) and np.abs(np.sort(t0) - np.sort(t1)).max() > 1e-6 * L[1 - a]):
+            raise MeshingError("contours", f"the inclusion percolates along axis {a} but its crossings of x_{a} = 0 "
+                               f"({np.round(np.sort(t0), 6).tolist()}) and x_{a} = L ({np.round(np.sort(t1), 6).tolist()}) "
+                               "are not translates (is the field periodic?)", inclusion_id)
+        for i, j in zip(np.array(on0)[np.argsort(t0)], np.array(on1)[np.argsort(t1)]):
+            target[int(j)] = int(i)
+    keep = [c for c in used if c not in target]
+    index = {c: k for k, c in enumerate(keep)}
+    index.update({j: index[i] for j, i in target.items()})
+    remap = lambda e: (index[e[0]], e[1])  # noqa: E731
+    arcs = [arc if arc.closed else replace(arc, start=remap(arc.start), end=remap(arc.end)) for arc in arcs]
+    return arcs, [crossings[c] for c in keep]
+
+
 # ----------------------------------------------------------------------------- cutting
 def cut_loop(
-    loop: np.ndarray, box, refine_fn: Callable, inclusion_id: int
+    loop: np.ndarray, box, refine_fn: Callable, inclusion_id: int, keep_axes=()
 ) -> tuple[list[Arc], list[Crossing]]:
     """Cut a closed unwrapped loop by the lattice lines and translate the pieces into the box.
+    Along `keep_axes` only the pieces in the cell [0, L] are kept (a capped loop's pieces beyond
+    the box are copies of pieces inside it).
 
     Args:
         loop: (n, 2) closed polyline (unwrapped, first point not repeated), ideally on phi = 0.
@@ -196,20 +261,25 @@ def cut_loop(
         ks.append(k)
         dirs.append(cw[j, a] - cv[j, a])
     j, t, ax, k, dr = (np.concatenate(x) for x in (js, ts, axes, ks, dirs))
+    keep = list(keep_axes)
     if j.size == 0:
-        return [Arc(inclusion_id, V - cv[0] * L, closed=True)], []
+        return ([Arc(inclusion_id, V - cv[0] * L, closed=True)] if not cv[0, keep].any() else []), []
     order = np.lexsort((t, j))
     j, t, ax, k, dr = j[order], t[order], ax[order], k[order], dr[order]
     approx = V[j] + t[:, None] * (W[j] - V[j])
     rows = np.arange(j.size)
     approx[rows, ax] = k * L[ax]
-    pts = np.asarray(refine_fn(approx, ax), dtype=float).copy()
+    # along keep_axes a crossing beyond [0, L] only ends dropped pieces (it may lie on a cap, off phi = 0)
+    used = ((approx[:, keep] >= -1e-9 * L[keep]) & (approx[:, keep] <= L[keep] * (1 + 1e-9))).all(axis=1)
+    pts = approx.copy()
+    if used.any():
+        pts[used] = np.asarray(refine_fn(approx[used], ax[used]), dtype=float)
     pts[rows, ax] = k * L[ax]  # exactly on the line
     other = 1 - ax
     tcan = wrap(pts[rows, other], L[other])
     # a crossing at (or within rounding of) a box corner has no well defined edge
     gap = np.minimum(tcan, L[other] - tcan)
-    if np.any(gap < 1e-9 * L[other]):
+    if np.any(used & (gap < 1e-9 * L[other])):
         raise MeshingError("contours", "the interface passes through a box corner; shift the geometry slightly",
                            inclusion_id)
     crossings = [Crossing(int(a), float(tc), inclusion_id) for a, tc in zip(ax, tcan)]
@@ -222,6 +292,8 @@ def cut_loop(
         nxt = (e + 1) % m
         count = (j[nxt] - j[e]) % n
         vid = (j[e] + 1 + np.arange(count)) % n
+        if cur[keep].any():
+            continue
         inner = V[vid] - cur * L
         start, sside = _local_crossing(pts[e], ax[e], k[e], tcan[e], cur, L, inclusion_id)
         end, eside = _local_crossing(pts[nxt], ax[nxt], k[nxt], tcan[nxt], cur, L, inclusion_id)

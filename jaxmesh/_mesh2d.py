@@ -53,10 +53,13 @@ from ._contours import (
     assemble_box_pslg,
     assemble_pslg,
     box_window_axes,
+    capped_axes_2d,
+    capped_values,
     clip_loop,
     cut_loop,
     extract_box_loops,
     extract_loops,
+    join_capped_crossings,
     rebuild_box_segments,
     resample_polyline,
     window_grid,
@@ -273,33 +276,42 @@ def _interfaces(ms, levels, size: _Size, cfg: Mesh2DConfig) -> tuple[PSLG, dict]
         probe = lo + (hi - lo) * np.stack(np.meshgrid(*[np.linspace(0, 1, 5)] * 2, indexing="ij"), -1).reshape(-1, 2)
         step = min(grid_step, cfg.window_step * float(size.np_fn(probe).min()))
         margin = 2 * grid_step + 3 * step
+        capped = capped_axes_2d(lo, hi, box, margin) if ms.periodic else ()
         if ms.periodic:
-            origin, shape = window_grid(lo, hi, step, margin, box)
+            cap = 2 * step  # contours closed off beyond the box along the axes where the inclusion percolates
+            origin, shape = window_grid(lo, hi, step, margin, box, capped, cap)
             ij = np.stack(np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij"), -1).reshape(-1, 2)
-            values = lvl.values(origin + ij * step).reshape(tuple(shape))
-            loops, cut = extract_loops(values, origin, step, inc.id), cut_loop
+            values = capped_values(lvl.values(origin + ij * step).reshape(tuple(shape)), origin, step, box, capped, cap)
+            loops = extract_loops(values, origin, step, inc.id)
+            cut = lambda *args: cut_loop(*args, keep_axes=capped)  # noqa: E731
         else:
             axes = box_window_axes(lo, hi, step, margin, box)
             xy = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 2)
             values = lvl.values(xy).reshape(len(axes[0]), len(axes[1]))
             loops, cut = extract_box_loops(values, axes, box, inc.id), clip_loop
-        mine = []
+        pieces, cross = [], []
         for loop in loops:
             def refine(p, ax, lvl=lvl):
                 return lvl.project(p, free=np.eye(2)[1 - np.asarray(ax)])[0]
 
-            pieces, cross = cut(loop, box, refine, inc.id)
-            off = len(crossings)
-            crossings.extend(cross)
-            for arc in pieces:
-                if arc.closed:
-                    nodes = resample_polyline(arc.points, True, size.np_fn, cfg.min_loop_segments)
-                    mine.append(Arc(inc.id, nodes, True))
-                else:
-                    same_line = cross[arc.start[0]].axis == cross[arc.end[0]].axis and arc.start[1] == arc.end[1]
-                    nodes = resample_polyline(arc.points, False, size.np_fn, 2 if same_line else 1)
-                    s, e = (arc.start[0] + off, arc.start[1]), (arc.end[0] + off, arc.end[1])
-                    mine.append(Arc(inc.id, nodes, False, s, e))
+            loop_pieces, loop_cross = cut(loop, box, refine, inc.id)
+            pieces += [arc if arc.closed else replace(
+                arc, start=(arc.start[0] + len(cross), arc.start[1]), end=(arc.end[0] + len(cross), arc.end[1]))
+                for arc in loop_pieces]
+            cross += loop_cross
+        if capped:
+            pieces, cross = join_capped_crossings(pieces, cross, capped, box, inc.id)
+        mine, off = [], len(crossings)
+        crossings.extend(cross)
+        for arc in pieces:
+            if arc.closed:
+                nodes = resample_polyline(arc.points, True, size.np_fn, cfg.min_loop_segments)
+                mine.append(Arc(inc.id, nodes, True))
+            else:
+                same_line = cross[arc.start[0]].axis == cross[arc.end[0]].axis and arc.start[1] == arc.end[1]
+                nodes = resample_polyline(arc.points, False, size.np_fn, 2 if same_line else 1)
+                s, e = (arc.start[0] + off, arc.start[1]), (arc.end[0] + off, arc.end[1])
+                mine.append(Arc(inc.id, nodes, False, s, e))
         # one projection call for every free node of this inclusion (open arcs keep their crossings)
         free = [np.arange(len(a.points)) if a.closed else np.arange(1, len(a.points) - 1) for a in mine]
         stacked = np.concatenate([a.points[f] for a, f in zip(mine, free)])
@@ -513,14 +525,6 @@ def mesh_2d(
         t0 = now
 
     ms = _as_microstructure(microstructure)
-    if ms.periodic:
-        for inc in ms.inclusions:
-            span = (np.asarray(inc.upper, float) - np.asarray(inc.lower, float)) / np.asarray(ms.box, float)
-            if (span > 0.999).any():
-                raise MeshingError("contours", f"the inclusion reaches its own periodic image along axis "
-                                   f"{int(np.argmax(span))} (it percolates: a channel or a band across the box); the "
-                                   "2D mesher needs every inclusion clear of its images (3D meshes such inclusions); "
-                                   "hint: --no-periodic meshes the window as a plain box", inc.id, frame_dependent=False)
     kw = {k: v for k, v in dict(iis=iis, nb_el=nb_el, curv_alpha=curv_alpha, grad=grad, h_max=h_max).items()
           if v is not None}
     size = _resolve_size(ms, h, kw)

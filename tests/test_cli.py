@@ -133,7 +133,7 @@ def test_cli_keeps_compilations_for_the_next_run(tmp_path):
 
 
 def test_generate_grf_names_the_inclusions_that_percolate(tmp_path, capsys):
-    """The conforming mesher refuses an inclusion that reaches its own periodic image: generate says so."""
+    """generate names the inclusions that reach their own periodic image, and mesh takes them."""
     from jaxmesh import load_input
 
     def generate(fraction):
@@ -147,6 +147,8 @@ def test_generate_grf_names_the_inclusions_that_percolate(tmp_path, capsys):
     assert listed is not None
     spanning = [inc.id for inc in load_input(out).inclusions if (np.asarray(inc.upper) - inc.lower >= 0.999).any()]
     assert [int(i) for i in listed.group(1).split(",")] == spanning
+    assert main(["mesh", str(out), "-o", str(tmp_path / "g.vtu")]) == 0
+    assert re.search(r"\] validate\s+valid", capsys.readouterr().out)
     assert "periodic image" not in generate(0.2)[1]
 
 

@@ -273,11 +273,33 @@ def test_bad_inputs():
     ms3 = Microstructure.from_functions([sphere_sdf(jnp.array([0.5, 0.5, 0.5]), 0.3)], (1.0, 1.0, 1.0), (16, 16, 16))
     with pytest.raises(ValueError, match="expected a 2D microstructure"):
         mesh_2d(ms3, h=0.05)
-    y = np.arange(32) / 32
-    band = np.broadcast_to(np.abs(y - 0.5) - 0.15, (32, 32))  # a band across the box along x: it percolates
-    with pytest.raises(MeshingError, match="own periodic image along axis 0") as err:
-        mesh_2d(Microstructure.from_levelset(np.ascontiguousarray(band)), h=0.05)
-    assert not err.value.frame_dependent
+
+
+def _periodic_distance(u):
+    return np.minimum(u % 1.0, 1.0 - u % 1.0)
+
+
+@pytest.mark.parametrize("case", ["wavy band", "diagonal band", "band and circle", "matrix negative"])
+def test_percolating_inclusions_mesh_periodic_and_conforming(case):
+    """Inclusions that reach their own periodic image (a band, a channel, a field negative in the
+    matrix) are closed off beyond the box, cut by it, and their crossings of opposite edges paired."""
+    n = 64
+    x, y = np.meshgrid(np.arange(n) / n, np.arange(n) / n, indexing="ij")
+    phi, area = {
+        "wavy band": (_periodic_distance(y - 0.5 - 0.05 * np.sin(2 * np.pi * x)) - 0.15, 0.3),
+        "diagonal band": (_periodic_distance(y - x) / np.sqrt(2) - 0.1, 0.2 * np.sqrt(2)),
+        "band and circle": (np.minimum(np.abs(y - 0.4) - 0.12,
+                                       np.hypot(_periodic_distance(x), _periodic_distance(y - 0.8)) - 0.1), None),
+        "matrix negative": (0.3 - np.hypot(x - 0.5, y - 0.5), 1 - np.pi * 0.09),
+    }[case]
+    ms = Microstructure.from_levelset(phi)
+    mesh = mesh_2d(ms, h=0.04)
+    _check_mesh(mesh, ms, 0.04, min_angle=20.0, mean_q=0.85)
+    spans = [np.ptp(np.asarray([inc.lower, inc.upper]), axis=0) for inc in ms.inclusions]
+    assert max(s.max() for s in spans) > 0.999  # it does percolate
+    if area is not None:
+        inside = signed_volumes(mesh.points, mesh.cells)[mesh.inclusion_id > 0].sum()
+        assert inside == pytest.approx(area, rel=0.01)
 
 
 @pytest.mark.parametrize("interior", ["hex", "quadtree"])
