@@ -475,8 +475,8 @@ def remove_trace_backtracks(points, tris, on_plane, box, axes, passes: int = 5) 
     """Collapse the shorter edge at every node where a trace on a box plane x_a = 0 or L turns back
     on itself (a fold of the surface along the plane, a fraction of a segment long): inserting the
     opposite trace's nodes into a zigzag cannot make the two traces equal. Nodes on a box edge stay;
-    a collapse that would leave the fan around the kept node folded is skipped. Returns the triangles (collapsed nodes
-    are left unreferenced)."""
+    a collapse that would leave the fan around the kept node folded is skipped. Returns the
+    triangles (collapsed nodes are left unreferenced)."""
     L = np.asarray(box, float)
     tris = tris.copy()
     for _ in range(passes):
