@@ -7,6 +7,7 @@ from jaxmesh import (
     InclusionSpec,
     MeshConfig,
     Microstructure,
+    load_input,
     mesh_rve,
     quality_report,
     random_inclusions,
@@ -206,6 +207,27 @@ def test_an_endless_fibre_meshes_periodic_and_conforming():
     on_fibre = np.isin(np.arange(mesh.n_points), mesh.cells[mesh.inclusion_id == fibre_id])
     np.testing.assert_array_equal(on_fibre[pairs[:, 0]], on_fibre[pairs[:, 1]])
     assert on_fibre[pairs[:, 0]].sum() > 20
+
+
+def test_a_laminate_image_meshes_its_layer_with_flat_interfaces(tmp_path):
+    """A labelled image whose label 1 is a layer across the box (it percolates along x and z) and
+    label 2 a ball beside it: both interfaces conform, the layer keeps its volume and its two faces
+    stay at y = 9.5 / 32 and 19.5 / 32 (sample i sits at y = i / 32: the boundaries at the half-sample)."""
+    n = 32
+    c = (np.arange(n) + 0.5) / n
+    x, y, z = np.meshgrid(c, c, c, indexing="ij")
+    labels = np.zeros((n, n, n), np.int32)
+    labels[:, 10:20, :] = 1
+    labels[(x - 0.5) ** 2 + (y - 0.8) ** 2 + (z - 0.5) ** 2 < 0.1**2] = 2
+    np.save(tmp_path / "laminate.npy", labels)
+    ms = load_input(tmp_path / "laminate.npy")
+    mesh = mesh_rve(ms, MeshConfig(iis=0.1))
+    _check(mesh, ms)
+    layer = mesh.cells[mesh.inclusion_id == 1]
+    vol = signed_volumes(mesh.points, mesh.cells)
+    assert vol[mesh.inclusion_id == 1].sum() == pytest.approx(10 / 32, rel=0.01)
+    ys = mesh.points[np.unique(layer), 1]
+    assert ys.min() == pytest.approx(9.5 / 32, abs=0.01) and ys.max() == pytest.approx(19.5 / 32, abs=0.01)
 
 
 def test_a_field_negative_in_the_matrix_meshes_its_matrix_and_says_so(tmp_path):
