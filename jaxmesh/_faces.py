@@ -32,6 +32,7 @@ from ._triangulate2d import (
     flood_fill,
     improve_by_flips,
     missing_segments,
+    smooth_free_nodes,
     triangle_angles,
 )
 from ._truss import make_constraints, relax
@@ -233,31 +234,9 @@ def _refine_face(uv, tri, seg, nf: int, h2, box2, min_angle: float, rounds: int 
             break
         uv = np.vstack([uv, cc[keep]])
         tri, _ = improve_by_flips(uv, constrained_delaunay(uv, seg), seg)
-        uv = _smooth(uv, tri, nf)
+        uv = smooth_free_nodes(uv, tri, nf)
         tri, _ = improve_by_flips(uv, tri, seg)
     return uv, tri
-
-
-def _smooth(uv, tri, nf: int, iters: int = 5):
-    """Laplacian smoothing of the free nodes; a move is kept only where no triangle of the star
-    inverts and its smallest angle does not drop (so a node never crosses a segment)."""
-    uv = uv.copy()
-    stars = [[] for _ in range(len(uv))]
-    for t, row in enumerate(tri.tolist()):
-        for v in row:
-            stars[v].append(t)
-    for _ in range(iters):
-        for v in range(nf, len(uv)):
-            star = tri[stars[v]]
-            nb = np.unique(star)
-            old = uv[v].copy()
-            a0 = triangle_angles(uv, star).min()
-            uv[v] = uv[nb[nb != v]].mean(axis=0)
-            p = uv[star]
-            e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-            if (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0] <= 0).any() or triangle_angles(uv, star).min() < a0:
-                uv[v] = old
-    return uv
 
 
 def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn, config: SurfaceConfig,

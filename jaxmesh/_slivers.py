@@ -32,11 +32,11 @@ def min_dihedral(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
 
 
 def _stars(cells: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Vertex -> tets, CSR (tet ids sorted by vertex, offsets (n + 1,))."""
+    """Vertex -> cells (tets or triangles), CSR (cell ids sorted by vertex, offsets (n + 1,))."""
     flat = cells.ravel()
     order = np.argsort(flat, kind="stable")
     offsets = np.concatenate([[0], np.cumsum(np.bincount(flat, minlength=n))])
-    return order // 4, offsets
+    return order // cells.shape[1], offsets
 
 
 # ----------------------------------------------------------------------------- optimisation-based smoothing
@@ -110,7 +110,7 @@ def colour_classes(edges: np.ndarray, active: np.ndarray, seed: int = 0) -> list
 
 
 def _star_rows(by: np.ndarray, off: np.ndarray, verts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Tets of the stars of verts (CSR from `_stars`) and the index into verts owning each."""
+    """Cells of the stars of verts (CSR from `_stars`) and the index into verts owning each."""
     counts = off[verts + 1] - off[verts]
     owner = np.repeat(np.arange(len(verts)), counts)
     start = np.repeat(off[verts] - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)

@@ -13,6 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ._quality import cell_quality, cross3
+from ._slivers import _star_rows, _stars
 
 
 def half_edges(tris: np.ndarray, n: int):
@@ -263,6 +264,27 @@ def _in_one_plane(points, on_plane, tris) -> np.ndarray:
     return (flags & (p[:, 0] == p[:, 1]) & (p[:, 1] == p[:, 2])).any(axis=1)
 
 
+def _collapse_shapes_ok(points, tris, on_plane, pairs, n: int, min_cos: float, min_quality: float,
+                        max_length: np.ndarray | None) -> np.ndarray:
+    """(c, 2) bool: whether collapsing pairs[:, 0] <- pairs[:, 1] (column 0) or pairs[:, 1] <-
+    pairs[:, 0] (column 1) keeps the moved triangles' shape (`collapse_edges`' geometric checks)."""
+    keep = np.concatenate([pairs[:, 0], pairs[:, 1]])
+    drop = np.concatenate([pairs[:, 1], pairs[:, 0]])
+    by, off = _stars(tris, n)
+    rows, owner = _star_rows(by, off, drop)
+    old = tris[rows]
+    moved = ~np.any(old == keep[owner][:, None], axis=1)  # the two triangles on the edge vanish
+    old, owner = old[moved], owner[moved]
+    new = np.where(old == drop[owner][:, None], keep[owner][:, None], old)
+    bad = _in_one_plane(points, on_plane, new)  # a piece beyond a plane would fold flat onto it
+    bad |= np.sum(_normals(points[old]) * _normals(points[new]), axis=1) < min_cos
+    bad |= cell_quality(points, new) < min_quality
+    if max_length is not None:  # the ring's farthest node from the kept one
+        far = np.linalg.norm(points[new] - points[keep[owner]][:, None], axis=2).max(axis=1)
+        bad |= far > np.concatenate([max_length, max_length])[owner]
+    return (np.bincount(owner, bad, minlength=len(keep)) == 0).reshape(2, -1).T
+
+
 def collapse_edges(points, tris, on_plane, short: np.ndarray, max_length: np.ndarray | None = None, *,
                    min_cos: float = 0.5, min_quality: float = 0.2):
     """Collapse the marked edges (shortest first) by removing one end vertex into the other.
@@ -287,6 +309,12 @@ def collapse_edges(points, tris, on_plane, short: np.ndarray, max_length: np.nda
     if cand.size == 0:
         return points, tris, on_plane, 0
     length = np.linalg.norm(points[edges[cand, 0]] - points[edges[cand, 1]], axis=1)
+    # A collapse is only tried where no earlier one touched its ring, so its triangles are the
+    # input's: the shape checks are evaluated for every candidate at once.
+    shape_ok = _collapse_shapes_ok(points, tris, on_plane, edges[cand], n, min_cos, min_quality,
+                                   None if max_length is None else max_length[cand])
+    pos = np.full(len(edges), -1)
+    pos[cand] = np.arange(len(cand))
     # plain Python sets: the stars hold ~6 triangles, where NumPy calls cost more than the work
     tri = tris.tolist()
     star = [[] for _ in range(n)]
@@ -315,21 +343,11 @@ def collapse_edges(points, tris, on_plane, short: np.ndarray, max_length: np.nda
                 continue  # the link condition: the collapse would pinch the surface
             if min(sum(alive[t] for t in star[w]) for w in opposite) <= 3:
                 continue
-            if max_length is not None:
-                ring = np.fromiter(ring_drop - {keep, drop}, np.int64)
-                if np.linalg.norm(points[ring] - points[keep], axis=1).max() > max_length[e]:
-                    continue
-            moved = [t for t in around if t not in on_edge]
-            old = np.array([tri[t] for t in moved])
-            new = np.where(old == drop, keep, old)
-            if _in_one_plane(points, on_plane, new).any():
-                continue  # a piece beyond a plane would fold flat onto it and lose its trace
-            if (np.sum(_normals(points[old]) * _normals(points[new]), axis=1) < min_cos).any() or (
-                cell_quality(points, new) < min_quality
-            ).any():
+            if not shape_ok[pos[e], int(keep != u)]:
                 continue
-            for t, row in zip(moved, new.tolist()):
-                tri[t] = row
+            moved = [t for t in around if t not in on_edge]
+            for t in moved:
+                tri[t] = [keep if w == drop else w for w in tri[t]]
                 star[keep].append(t)
             alive[on_edge] = False
             touched[list(ring_drop | ring_keep)] = True

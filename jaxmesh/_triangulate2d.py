@@ -33,6 +33,7 @@ from scipy.spatial import Delaunay, cKDTree
 from ._errors import MeshingError
 from ._contours import BOX_SEGMENT, PSLG, split_segments
 from ._quality import cell_quality
+from ._slivers import _star_rows, _stars, colour_classes
 
 # ----------------------------------------------------------------------------- basic helpers
 def _orient(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -417,8 +418,50 @@ def improve_by_flips(
 # ----------------------------------------------------------------------------- Delaunay refinement
 def triangle_angles(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(m, 3) interior angles in degrees, column k at vertex k."""
-    p = points[triangles]
-    out = np.empty(triangles.shape)
+    return _angles_of(points[triangles])
+
+
+def smooth_free_nodes(points: np.ndarray, triangles: np.ndarray, n_fixed: int, iters: int = 5) -> np.ndarray:
+    """Laplacian smoothing of the nodes from n_fixed on, of ccw triangles: a node moves to its
+    neighbours' mean only where no triangle of its star inverts and their smallest angle does not
+    drop (so a node never crosses a segment). Nodes that share no triangle move together
+    (`colour_classes`); each keeps or rejects its move on its own star.
+    """
+    points = np.array(points, dtype=float, copy=True)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    n = len(points)
+    if n <= n_fixed or not len(triangles):
+        return points
+    by, off = _stars(triangles, n)
+    edges = np.unique(np.sort(triangles[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1), axis=0)
+    both = np.concatenate([edges, edges[:, ::-1]])
+    neighbours = both[np.argsort(both[:, 0], kind="stable"), 1]
+    deg = np.bincount(both[:, 0], minlength=n)
+    nb_off = np.concatenate([[0], np.cumsum(deg)])
+    classes = colour_classes(edges, (np.arange(n) >= n_fixed) & (deg > 0))
+    for _ in range(iters):
+        for verts in classes:
+            rows, owner = _star_rows(by, off, verts)
+            nbr, nb_owner = _star_rows(neighbours, nb_off, verts)
+            target = np.stack([np.bincount(nb_owner, points[nbr, j], minlength=len(verts))
+                               for j in range(2)], 1) / deg[verts][:, None]
+            starts = np.flatnonzero(np.diff(owner, prepend=-1))  # owner is sorted, every star non-empty
+            star = triangles[rows]
+            before = np.minimum.reduceat(triangle_angles(points, star).min(axis=1), starts)
+            p = points[star]
+            mover = star == verts[owner][:, None]
+            p[mover] = target[owner][np.nonzero(mover)[0]]
+            e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+            flipped = np.maximum.reduceat((e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0] <= 0).astype(np.int8), starts)
+            after = np.minimum.reduceat(_angles_of(p).min(axis=1), starts)
+            ok = (flipped == 0) & (after >= before)
+            points[verts[ok]] = target[ok]
+    return points
+
+
+def _angles_of(p: np.ndarray) -> np.ndarray:
+    """(m, 3) interior angles in degrees of triangles given by their corners p (m, 3, 2)."""
+    out = np.empty(p.shape[:2])
     for k in range(3):
         u, v = p[:, (k + 1) % 3] - p[:, k], p[:, (k + 2) % 3] - p[:, k]
         out[:, k] = np.degrees(np.arctan2(np.abs(u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]), np.sum(u * v, axis=1)))

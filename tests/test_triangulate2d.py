@@ -21,6 +21,8 @@ from jaxmesh._triangulate2d import (
     missing_segments,
     recover_segments_by_flips,
     refine_bad_triangles,
+    smooth_free_nodes,
+    triangle_angles,
 )
 
 
@@ -216,6 +218,27 @@ def test_improve_by_flips_raises_min_quality_and_keeps_constraints():
     # never worse than where it started (Delaunay maximises the min angle, not min q)
     out0, _ = improve_by_flips(pts, tri, np.zeros((0, 2), np.int64))
     assert cell_quality(pts, out0).min() >= cell_quality(pts, tri).min()
+
+
+def test_smooth_free_nodes_raises_angles_and_keeps_fixed_nodes_and_segments():
+    rng = np.random.default_rng(5)
+    side = np.linspace(0.0, 1.0, 11)
+    fixed = np.unique(np.vstack([np.c_[side, 0 * side], np.c_[side, 0 * side + 1], np.c_[0 * side, side],
+                                 np.c_[0 * side + 1, side], np.c_[0.5 + 0 * side[1:-1], side[1:-1]]]), axis=0)
+    pts = np.vstack([fixed, rng.uniform(0.02, 0.98, (400, 2))])
+    wall = np.flatnonzero(np.isclose(pts[: len(fixed), 0], 0.5))
+    wall = wall[np.argsort(pts[wall, 1])]
+    segments = np.stack([wall[:-1], wall[1:]], axis=1)  # the line x = 0.5, from y = 0.1 to 0.9
+    tri = constrained_delaunay(pts, segments)
+    mid = np.flatnonzero((pts[:, 1] > 0.2) & (pts[:, 1] < 0.8))
+    mid = mid[mid >= len(fixed)]  # free nodes beside the wall, away from its ends
+    out = smooth_free_nodes(pts, tri, len(fixed))
+    assert np.array_equal(out[: len(fixed)], pts[: len(fixed)])
+    _check_triangulation(out, tri, 1.0)  # nothing inverted, area kept
+    before, after = triangle_angles(pts, tri).min(axis=1), triangle_angles(out, tri).min(axis=1)
+    assert after.min() >= before.min() and after.mean() > before.mean() + 5.0
+    assert np.array_equal(np.sign(out[mid, 0] - 0.5), np.sign(pts[mid, 0] - 0.5))  # none crossed the wall
+    assert not np.array_equal(out, pts)
 
 
 def test_edge_keys_and_errors():
