@@ -164,12 +164,25 @@ def conforming_delaunay(
 
 
 # ----------------------------------------------------------------------------- flip recovery
-def _crossing_edges(points, triangles, a: int, b: int):
-    """Edges (c, d) of the triangulation crossing the open segment ab, with their owner triangles."""
+def _triangle_boxes(points, triangles) -> tuple[np.ndarray, np.ndarray]:
+    """Per triangle the lower and upper corners (m, 2) of its bounding box."""
+    p0, p1, p2 = (points[triangles[:, k]] for k in range(3))
+    return np.minimum(np.minimum(p0, p1), p2), np.maximum(np.maximum(p0, p1), p2)
+
+
+def _crossing_edges(points, triangles, a: int, b: int, boxes=None):
+    """Edges (c, d) of the triangulation crossing the open segment ab, with their owner triangles.
+    boxes: the triangles' `_triangle_boxes`, when the caller keeps them."""
     n = len(points)
-    c, d, u, v, t1, t2, _ = interior_edges(triangles, n)
     pa, pb = points[a], points[b]
     lo, hi = np.minimum(pa, pb), np.maximum(pa, pb)
+    # both triangles of a crossing edge meet ab, so the edges shared within the triangles whose
+    # boxes meet ab's box hold every crossing edge (and the search is not over the whole mesh)
+    t_lo, t_hi = _triangle_boxes(points, triangles) if boxes is None else boxes
+    near_tri = np.flatnonzero((t_lo[:, 0] <= hi[0]) & (t_lo[:, 1] <= hi[1]) & (t_hi[:, 0] >= lo[0])
+                              & (t_hi[:, 1] >= lo[1]))
+    c, d, u, v, t1, t2, _ = interior_edges(triangles[near_tri], n)
+    t1, t2 = near_tri[t1], near_tri[t2]
     pc, pd = points[c], points[d]
     near = np.all(np.minimum(pc, pd) <= hi, axis=1) & np.all(np.maximum(pc, pd) >= lo, axis=1)
     near &= (c != a) & (c != b) & (d != a) & (d != b)
@@ -196,8 +209,9 @@ def recover_segments_by_flips(points: np.ndarray, triangles: np.ndarray, segment
     points = np.asarray(points, dtype=float)
     tri = np.array(triangles, dtype=np.int64, copy=True)
     n = len(points)
+    boxes = _triangle_boxes(points, tri)  # kept up to date through the flips
     for a, b in np.asarray(segments, dtype=np.int64):
-        c, d, t1, t2, degenerate = _crossing_edges(points, tri, a, b)
+        c, d, t1, t2, degenerate = _crossing_edges(points, tri, a, b, boxes)
         if degenerate:
             raise MeshingError("triangulate", f"a node lies on the constrained segment ({a}, {b})")
         if c.size == 0:
@@ -235,6 +249,8 @@ def recover_segments_by_flips(points: np.ndarray, triangles: np.ndarray, segment
                 continue
             tri[ta] = (x, v, u)
             tri[tb] = (v, y, u)
+            flipped = np.array([ta, tb])
+            boxes[0][flipped], boxes[1][flipped] = _triangle_boxes(points, tri[flipped])
             del owners[key]
             for t, e in ((ta, (x, v)), (tb, (v, y)), (ta, (u, x)), (tb, (y, u))):
                 ek = int(edge_keys(*e, n))
