@@ -34,6 +34,7 @@ from ._errors import MeshingError
 from ._contours import BOX_SEGMENT, PSLG, split_segments
 from ._quality import cell_quality
 from ._slivers import _star_rows, _stars, colour_classes
+from ._surface_ops import half_edges
 
 # ----------------------------------------------------------------------------- basic helpers
 def _orient(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -449,7 +450,7 @@ def smooth_free_nodes(points: np.ndarray, triangles: np.ndarray, n_fixed: int, i
     if n <= n_fixed or not len(triangles):
         return points
     by, off = _stars(triangles, n)
-    edges = np.unique(np.sort(triangles[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1), axis=0)
+    edges, _ = half_edges(triangles, n)
     both = np.concatenate([edges, edges[:, ::-1]])
     neighbours = both[np.argsort(both[:, 0], kind="stable"), 1]
     deg = np.bincount(both[:, 0], minlength=n)
