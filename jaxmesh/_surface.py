@@ -350,9 +350,10 @@ def improve(points, tris, on_plane, phi_fn, h_fn, box, config: SurfaceConfig, cu
     """Rounds of edge collapses (edges < collapse_ratio * h, needles), 1-to-4 refinement (edges >
     refine_ratio * h), quality flips and truss relaxation.
 
-    Folds a relaxation leaves are smoothed out (`unfold`); one that still folds a triangle, or takes
-    the smallest angle below both its old value and _KEEP_ANGLE, is retried with dt / 5 and
-    otherwise dropped (back off, never delete triangles).
+    Folds a relaxation leaves are smoothed out (`unfold`); around a triangle it still folds, or takes
+    below both the old smallest angle and _KEEP_ANGLE, the nodes go back (`revert_around_defects`);
+    where that does not clear them the relaxation is retried with dt / 5 and otherwise dropped (back
+    off, never delete triangles).
     Returns (points, tris, on_plane).
     """
     truss = config.truss
@@ -378,10 +379,38 @@ def improve(points, tris, on_plane, phi_fn, h_fn, box, config: SurfaceConfig, cu
             cfg = truss if attempt == 0 else dataclasses.replace(truss, dt=truss.dt * truss.dt_retry_factor)
             q, t, _ = _relax(points, tris, on_plane, phi_fn, h_fn, box, cfg, cut, config.newton_steps)
             q = unfold(q, t, on_plane, phi_fn, config.newton_steps)
-            if not folded(q, t, phi_fn).any() and min_angles(q, t).min() >= min(worst, _KEEP_ANGLE):
+            q = revert_around_defects(points, q, t, phi_fn, min(worst, _KEEP_ANGLE), on_plane.any(axis=1))
+            if q is not None:
                 points, tris = q, t
                 break
     return points, tris, on_plane
+
+
+def revert_around_defects(before, after, tris, phi_fn, min_angle: float, pinned: np.ndarray, rings: int = 3):
+    """The relaxed nodes `after`, except around the defects of tris that the relaxation made: there
+    the nodes go back to `before`, over a ring of triangles that grows while defects remain (at
+    most `rings` times). None when some remain, or when going back would move a `pinned` node (one on
+    a box plane: a partial revert there once left a shallow cut cap the volume recovery could not
+    close). A defect is a triangle below min_angle degrees, or folded (`folded`) where it was not with
+    the nodes `before`: a fold the relaxation found (seen at a saddle of a level set, where the
+    gradient disagrees with the marching-cubes triangle) made every relaxation of a large surface
+    count as failed, one fold in 35k triangles throwing all away.
+    """
+    after = after.copy()
+    had_fold = folded(before, tris, phi_fn)
+
+    def defects(x):
+        return (folded(x, tris, phi_fn) & ~had_fold) | (min_angles(x, tris) < min_angle)
+
+    for _ in range(rings):
+        bad = defects(after)
+        if not bad.any():
+            return after
+        nodes = np.unique(tris[np.isin(tris, tris[bad]).any(axis=1)])
+        if pinned[nodes].any():
+            return None
+        after[nodes] = before[nodes]
+    return None if defects(after).any() else after
 
 
 def _collapse_short(points, tris, on_plane, h_fn, ratio: float, refine_ratio: float, passes: int = 3):

@@ -9,7 +9,7 @@ import pytest
 from jaxmesh._intersect import intersecting_pairs
 from jaxmesh._quality import cell_quality, min_angles
 from jaxmesh._surface import (SurfaceConfig, as_size_fn, enclosed_volume, extract, folded, mesh_inclusion, project,
-                              release_touching, unfold)
+                              release_touching, revert_around_defects, unfold)
 from jaxmesh._surface_ops import (collapse_edges, cut_plane, flip_edges, half_edges, refine, straddling,
                                   touching_plane_nodes)
 from jaxmesh.geometry._microstructure import Microstructure
@@ -71,6 +71,30 @@ def test_unfold_removes_a_fold_and_keeps_nodes_on_the_level_set(sphere):
     assert np.abs(np.linalg.norm(r - 0.5, axis=1) - 0.2).max() < 1e-10
     assert np.array_equal(r[j], q[j])
     assert np.array_equal(unfold(p, t, on_plane, phi, 8), p)  # nothing folded: nothing moves
+
+
+def test_revert_around_defects_keeps_the_relaxation_away_from_a_fold_it_made(sphere):
+    phi, p, t = sphere
+    rng = np.random.default_rng(3)
+    moved = project(phi, p + 0.002 * rng.standard_normal(p.shape), np.zeros(p.shape, bool))[0]  # a "relaxation"
+    edges, _ = half_edges(t, len(p))
+    i, j = edges[0]
+    moved[i] = project(phi, (2 * p[j] - p[i])[None], np.zeros((1, 3), bool))[0][0]  # it folds at node i
+    assert folded(moved, t, phi).any() and not folded(p, t, phi).any()
+    free = np.zeros(len(p), bool)
+    r = revert_around_defects(p, moved, t, phi, 0.0, free)
+    assert r is not None and not folded(r, t, phi).any()
+    back = np.all(r == p, axis=1)
+    assert back[i] and back[j] and back.sum() < 0.2 * len(p)  # only around the fold
+    assert np.array_equal(r[~back], moved[~back])
+    # a fold that the nodes before the relaxation already make does not fail it
+    assert np.array_equal(revert_around_defects(moved, moved, t, phi, 0.0, free), moved)
+    # defects that going back cannot clear: None (the caller keeps the unrelaxed surface)
+    assert revert_around_defects(p, moved, t, phi, 61.0, free) is None
+    # nor where going back would move a pinned (box-plane) node
+    pinned = free.copy()
+    pinned[j] = True
+    assert revert_around_defects(p, moved, t, phi, 0.0, pinned) is None
 
 
 def test_cut_plane_splits_without_straddling(sphere):
