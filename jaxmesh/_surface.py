@@ -351,9 +351,9 @@ def improve(points, tris, on_plane, phi_fn, h_fn, box, config: SurfaceConfig, cu
     refine_ratio * h), quality flips and truss relaxation.
 
     Folds a relaxation leaves are smoothed out (`unfold`); around a triangle it still folds, or takes
-    below both the old smallest angle and _KEEP_ANGLE, the nodes go back (`revert_around_defects`);
-    where that does not clear them the relaxation is retried with dt / 5 and otherwise dropped (back
-    off, never delete triangles).
+    below both the old smallest angle and _KEEP_ANGLE, the nodes go back (`revert_around_defects`,
+    never box-plane nodes); where that does not clear them the relaxation is retried with dt / 5 and
+    otherwise dropped (back off, never delete triangles).
     Returns (points, tris, on_plane).
     """
     truss = config.truss

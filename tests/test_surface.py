@@ -81,18 +81,18 @@ def test_revert_around_defects_keeps_the_relaxation_away_from_a_fold_it_made(sph
     i, j = edges[0]
     moved[i] = project(phi, (2 * p[j] - p[i])[None], np.zeros((1, 3), bool))[0][0]  # it folds at node i
     assert folded(moved, t, phi).any() and not folded(p, t, phi).any()
-    free = np.zeros(len(p), bool)
-    r = revert_around_defects(p, moved, t, phi, 0.0, free)
+    none_pinned = np.zeros(len(p), bool)
+    r = revert_around_defects(p, moved, t, phi, 0.0, none_pinned)
     assert r is not None and not folded(r, t, phi).any()
     back = np.all(r == p, axis=1)
     assert back[i] and back[j] and back.sum() < 0.2 * len(p)  # only around the fold
     assert np.array_equal(r[~back], moved[~back])
     # a fold that the nodes before the relaxation already make does not fail it
-    assert np.array_equal(revert_around_defects(moved, moved, t, phi, 0.0, free), moved)
+    assert np.array_equal(revert_around_defects(moved, moved, t, phi, 0.0, none_pinned), moved)
     # defects that going back cannot clear: None (the caller keeps the unrelaxed surface)
-    assert revert_around_defects(p, moved, t, phi, 61.0, free) is None
+    assert revert_around_defects(p, moved, t, phi, 61.0, none_pinned) is None
     # nor where going back would move a pinned (box-plane) node
-    pinned = free.copy()
+    pinned = none_pinned.copy()
     pinned[j] = True
     assert revert_around_defects(p, moved, t, phi, 0.0, pinned) is None
 
