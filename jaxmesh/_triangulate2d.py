@@ -555,9 +555,19 @@ def refine_bad_triangles(
         if not bad.any() and not split:
             break
         stats["rounds"] += 1
+        # Ruppert: a segment of a bad triangle seen from its apex at more than 90 deg is encroached by
+        # that apex; the circumcentre lies across the segment, where inserting it changes nothing
+        for t, col in zip(*np.nonzero(bad[:, None] & (ang > 90.0))):
+            a_end, b_end = tri[t, (col + 1) % 3], tri[t, (col + 2) % 3]
+            j = np.searchsorted(seg_keys[order_k], edge_keys(a_end, b_end, n))
+            if j < len(seg_keys) and seg_keys[order_k[j]] == edge_keys(a_end, b_end, n):
+                split.add(int(order_k[j]))
+                bad[t] = False
         order = np.argsort(ang[bad, k[bad]])  # worst first
         cc = circumcenters(p[bad][order])
         rad = np.linalg.norm(cc - p[bad][order][:, 0], axis=1)
+        # a circumcentre on an existing node (one inserted in an earlier round) adds nothing
+        fresh = cKDTree(pts).query(cc)[0] > 1e-9 * rad
         # encroachment: inside the diametral circle of a segment
         a, b = pslg.points[pslg.segments[:, 0]], pslg.points[pslg.segments[:, 1]]
         mid, half = 0.5 * (a + b), 0.5 * np.linalg.norm(b - a, axis=1)
@@ -569,6 +579,8 @@ def refine_bad_triangles(
             hit = [s for s in hit if np.linalg.norm(cc[i] - mid[s]) < half[s]]
             if hit:
                 split.add(min(hit, key=lambda s: np.linalg.norm(cc[i] - mid[s]) / half[s]))
+            elif not fresh[i]:
+                continue
             elif outside[i]:
                 box_seg = np.nonzero(pslg.segment_inclusion == BOX_SEGMENT)[0]
                 split.add(int(box_seg[np.argmin(np.linalg.norm(mid[box_seg] - cc[i], axis=1))]))

@@ -1,7 +1,7 @@
 """Mesh validation: the invariants every jaxmesh output must satisfy (NumPy/SciPy only).
 
 `validate` runs eight checks and returns a `ValidationReport`; each check is designed to catch
-one class of defect (inverted cells, holes/overlaps, non-manifold facets, stray boundary facets,
+one class of defect (inverted cells, holes/overlaps, non-manifold facets or nodes in no cell, stray boundary facets,
 non-periodic faces, non-conforming interfaces, wrong labels, merged/split inclusions).
 """
 
@@ -300,10 +300,11 @@ def validate(mesh, microstructure=None, *, interface_tol=None, volume_rtol: floa
 
     table = facet_table(cells, n)
     over = int(np.sum(table.counts > 2))
-    checks["manifold"] = Check("manifold", over == 0,
-                               f"{len(table.counts)} facets, {over} in more than two cells",
+    unused = n - len(np.unique(cells))  # a node in no cell leaves an empty row in an FE system
+    checks["manifold"] = Check("manifold", over == 0 and unused == 0,
+                               f"{len(table.counts)} facets, {over} in more than two cells; {unused} nodes in no cell",
                                {"facets": len(table.counts), "non_manifold": over,
-                                "max_cells_per_facet": int(table.counts.max(initial=0))})
+                                "max_cells_per_facet": int(table.counts.max(initial=0)), "unused_nodes": unused})
 
     one = np.flatnonzero(table.counts == 1)
     face = classify_facets(points, table.facets[one], box, periodic_tol)

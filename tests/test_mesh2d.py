@@ -229,6 +229,23 @@ def test_levelset_and_label_inputs():
         assert set(np.unique(mesh.inclusion_id)) == {0, 1}
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_refinement_splits_a_segment_its_apex_encroaches(seed):
+    # four discs from a level-set grid, default size function: the truss left an interior node just
+    # inside a disc's chord, a flat triangle whose circumcentre lies across the segment; inserting it
+    # there changed nothing, and every round added the same node again (unused duplicates, 7 deg)
+    n = 96
+    x = np.arange(n) / n
+    X, Y = np.meshgrid(x, x, indexing="ij")
+    discs = [((0.2, 0.3), 0.12), ((0.7, 0.75), 0.15), ((0.55, 0.2), 0.1), ((0.05, 0.9), 0.08)]
+    phi = np.min([np.hypot((X - cx + 0.5) % 1 - 0.5, (Y - cy + 0.5) % 1 - 0.5) - r for (cx, cy), r in discs], axis=0)
+    ms = Microstructure.from_levelset(phi)
+    mesh = mesh_2d(ms, seed=seed)
+    assert len(np.unique(mesh.cells)) == mesh.n_points
+    _check_mesh(mesh, ms, 0.04)
+    assert mesh.metadata["counts"]["refinement"]["left"] == 0
+
+
 def test_seed_reproducible_and_no_relax():
     ms = Microstructure.from_functions([sphere_sdf(jnp.array([0.3, 0.6]), 0.2)], BOX, (48, 48))
     cfg = Mesh2DConfig(relax=False)

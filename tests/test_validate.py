@@ -145,6 +145,16 @@ def test_duplicated_cell_caught_by_manifold(dim):
 
 
 @pytest.mark.parametrize("dim", [2, 3])
+def test_node_in_no_cell_caught_by_manifold(dim):
+    m, ms = _labelled(dim)
+    pts = np.vstack([m.points, m.points[_node(m, [0.375] * dim)]])  # a duplicate that no cell uses
+    rep = validate(_remesh(m, points=pts), ms)
+    assert _failed(rep) == {"manifold"}
+    assert rep.checks["manifold"].counts["unused_nodes"] == 1
+    assert rep.checks["manifold"].counts["non_manifold"] == 0
+
+
+@pytest.mark.parametrize("dim", [2, 3])
 def test_boundary_node_moved_off_plane(dim):
     m, ms = _labelled(dim)
     pts = m.points.copy()
