@@ -547,9 +547,10 @@ def refine_bad_triangles(
         # one: split the interface side (its midpoint goes onto the curve) while it is long enough
         split = set()
         order_k = np.argsort(seg_keys)
+        sorted_keys = seg_keys[order_k]
         for t in np.nonzero((ang[rows, k] < min_angle) & corner)[0]:
             for w in (v1[t], v2[t]):
-                j = order_k[np.searchsorted(seg_keys[order_k], edge_keys(v[t], w, n))]
+                j = order_k[np.searchsorted(sorted_keys, edge_keys(v[t], w, n))]
                 if pslg.segment_inclusion[j] > 0 and np.linalg.norm(pts[w] - pts[v[t]]) > 4 * hmin[t]:
                     split.add(int(j))
         if not bad.any() and not split:
@@ -557,12 +558,12 @@ def refine_bad_triangles(
         stats["rounds"] += 1
         # Ruppert: a segment of a bad triangle seen from its apex at more than 90 deg is encroached by
         # that apex; the circumcentre lies across the segment, where inserting it changes nothing
-        for t, col in zip(*np.nonzero(bad[:, None] & (ang > 90.0))):
-            a_end, b_end = tri[t, (col + 1) % 3], tri[t, (col + 2) % 3]
-            j = np.searchsorted(seg_keys[order_k], edge_keys(a_end, b_end, n))
-            if j < len(seg_keys) and seg_keys[order_k[j]] == edge_keys(a_end, b_end, n):
-                split.add(int(order_k[j]))
-                bad[t] = False
+        t_obtuse, col = np.nonzero(bad[:, None] & (ang > 90.0))
+        keys = edge_keys(tri[t_obtuse, (col + 1) % 3], tri[t_obtuse, (col + 2) % 3], n)
+        pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+        on_segment = sorted_keys[pos] == keys
+        split.update(order_k[pos[on_segment]].tolist())
+        bad[t_obtuse[on_segment]] = False
         order = np.argsort(ang[bad, k[bad]])  # worst first
         cc = circumcenters(p[bad][order])
         rad = np.linalg.norm(cc - p[bad][order][:, 0], axis=1)

@@ -233,7 +233,7 @@ def test_levelset_and_label_inputs():
 def test_refinement_splits_a_segment_its_apex_encroaches(seed):
     # four discs from a level-set grid, default size function: the truss left an interior node just
     # inside a disc's chord, a flat triangle whose circumcentre lies across the segment; inserting it
-    # there changed nothing, and every round added the same node again (unused duplicates, 7 deg)
+    # there changed nothing, and every round added the same node again (unused duplicates)
     n = 96
     x = np.arange(n) / n
     X, Y = np.meshgrid(x, x, indexing="ij")
