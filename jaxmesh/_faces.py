@@ -25,6 +25,7 @@ from ._periodic import wrap
 from ._surface import SurfaceConfig, as_size_fn, evaluate_size, mesh_inclusion
 from ._surface_mesh import BOX_FACE, INTERFACE, OUTSIDE, SurfaceMesh
 from ._triangulate2d import (
+    SegmentRecoveryError,
     circumcenters,
     component_labels,
     constrained_delaunay,
@@ -300,23 +301,16 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
             uv = np.array(res.points)
             uv[:nf] = uv_fixed
             break
-    tri = tri_fn(uv)
-    tri, _ = improve_by_flips(uv, tri, seg)
-    uv, tri = _refine_face(uv, tri, seg, nf, h2, box2, config.face_min_angle)
+    try:
+        tri = tri_fn(uv)
+        tri, _ = improve_by_flips(uv, tri, seg)
+        uv, tri = _refine_face(uv, tri, seg, nf, h2, box2, config.face_min_angle)
+    except SegmentRecoveryError as err:  # traces that cross or fold: say whose and where
+        raise _trace_error(axis, face[list(err.segment)], reg, P, periodic, 1) from None
     lat = uv[nf:]
     missing = missing_segments(tri, seg, len(uv))
     if missing.any():
-        ends = face[seg[missing].ravel()]  # trace nodes are face nodes (local index < nf)
-        ids = sorted({int(reg.inclusion[i]) for i in ends} - {0})
-        x = tuple(round(float(v), 4) for v in P[ends[0]])
-        whose = f"inclusions {ids}" if len(ids) > 1 else "the inclusion"
-        raise MeshingError("faces", f"face {axis}: a trace of {whose} near x = {x} loses "
-                           f"{int(missing.sum())} segment(s) in the face triangulation (interface traces cross or "
-                           "touch: an inclusion surface folds, or crosses the box plane at a saddle, where the mesh "
-                           "size exceeds its features; a smaller iis / h_max, a smoother field, or the periodic field "
-                           "shifted by a few grid steps (numpy.roll) so that the box planes cut it elsewhere, resolves "
-                           "them)",
-                           ids[0] if len(ids) == 1 else None)
+        raise _trace_error(axis, face[seg[missing].ravel()], reg, P, periodic, int(missing.sum()))
     ncomp, comp = flood_fill(tri, seg, len(uv))
     cen = uv[tri].mean(axis=1)
     c3 = np.full((len(tri), 3), side)
@@ -339,6 +333,23 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
     if (ids1 < 0).any():
         raise MeshingError("faces", f"face {axis}: a node of x_{axis} = 0 has no translate on x_{axis} = L")
     return np.vstack([ids0[tri][:, ::-1], ids1[tri]]), np.vstack([sides, sides])
+
+
+def _trace_error(axis: int, ends: np.ndarray, reg: _Registry, P: np.ndarray, periodic: bool,
+                 count: int) -> MeshingError:
+    """The error for trace segments (node ids `ends`, all trace nodes) that the face triangulation
+    cannot hold: it names the inclusions and the place, and what resolves it."""
+    ids = sorted({int(reg.inclusion[i]) for i in ends} - {0})
+    x = tuple(round(float(v), 4) for v in P[ends[0]])
+    whose = f"inclusions {ids}" if len(ids) > 1 else "the inclusion"
+    remedy = ("a smaller iis / h_max, a smoother field, or the periodic field shifted by a few grid steps "
+              "(numpy.roll) so that the box planes cut it elsewhere," if periodic else
+              "a smaller iis / h_max or a smoother field")
+    return MeshingError("faces", f"face {axis}: a trace of {whose} near x = {x} loses {count} segment(s) in the "
+                        "face triangulation (interface traces cross or touch: an inclusion surface folds, or "
+                        f"crosses the box plane at a saddle, where the mesh size exceeds its features; {remedy} "
+                        "resolves them)",
+                        ids[0] if len(ids) == 1 else None)
 
 
 def _periodic_pairs(reg: _Registry, box) -> dict[int, np.ndarray]:

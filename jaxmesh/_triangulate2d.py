@@ -165,6 +165,15 @@ def conforming_delaunay(
 
 
 # ----------------------------------------------------------------------------- flip recovery
+class SegmentRecoveryError(MeshingError):
+    """A constrained segment could not be forced into the triangulation; `segment` holds its two
+    node indices, so that a caller can say where (e.g. which inclusion's trace) it failed."""
+
+    def __init__(self, message: str, segment: tuple[int, int]):
+        super().__init__("triangulate", message)
+        self.segment = segment
+
+
 def _triangle_boxes(points, triangles) -> tuple[np.ndarray, np.ndarray]:
     """Per triangle the lower and upper corners (m, 2) of its bounding box."""
     p0, p1, p2 = (points[triangles[:, k]] for k in range(3))
@@ -205,7 +214,8 @@ def recover_segments_by_flips(points: np.ndarray, triangles: np.ndarray, segment
     Args:
         points: (n, 2). triangles: (m, 3) CCW. segments: (s, 2) to recover.
     Returns:
-        (m, 3) CCW triangles containing every segment. Raises MeshingError if one cannot be recovered.
+        (m, 3) CCW triangles containing every segment. Raises SegmentRecoveryError (a MeshingError)
+        if one cannot be recovered.
     """
     points = np.asarray(points, dtype=float)
     tri = np.array(triangles, dtype=np.int64, copy=True)
@@ -214,7 +224,7 @@ def recover_segments_by_flips(points: np.ndarray, triangles: np.ndarray, segment
     for a, b in np.asarray(segments, dtype=np.int64):
         c, d, t1, t2, degenerate = _crossing_edges(points, tri, a, b, boxes)
         if degenerate:
-            raise MeshingError("triangulate", f"a node lies on the constrained segment ({a}, {b})")
+            raise SegmentRecoveryError(f"a node lies on the constrained segment ({a}, {b})", (int(a), int(b)))
         if c.size == 0:
             continue
         # local edge -> owners map over the triangles crossed by ab (flips stay inside them)
@@ -230,7 +240,7 @@ def recover_segments_by_flips(points: np.ndarray, triangles: np.ndarray, segment
         while queue:
             budget -= 1
             if budget < 0:
-                raise MeshingError("triangulate", f"edge flips did not recover the segment ({a}, {b})")
+                raise SegmentRecoveryError(f"edge flips did not recover the segment ({a}, {b})", (int(a), int(b)))
             x, y = queue.popleft()
             key = int(edge_keys(x, y, n))
             ta, tb = owners[key]

@@ -217,3 +217,29 @@ def test_crossing_triangles_under_every_sampling_are_refused_with_the_samplings_
                                            r"\[0.8, 1.25\] of the marching-cubes step"):
         mesh_surfaces(ms, 0.05)
     assert calls == [1.0, 0.8, 1.25]
+
+
+@pytest.mark.parametrize("periodic", [True, False])
+def test_a_trace_node_on_another_trace_segment_is_a_faces_error_naming_the_inclusion(periodic):
+    """Two trace segments of inclusion 3 on the face x = 0 where a node of one lies on the other:
+    no triangulation holds both (`recover_segments_by_flips` refuses). The error names the stage,
+    the face, the inclusion and the place, and offers numpy.roll only for a periodic field."""
+    from jaxmesh._errors import MeshingError
+    from jaxmesh._faces import _mesh_face, _Registry
+    from jaxmesh._surface import SurfaceConfig, as_size_fn
+
+    ms = Microstructure.from_functions([sphere_sdf(CENTRES[0], R)], (1.0, 1.0, 1.0), (16, 16, 16), periodic=periodic)
+    reg = _Registry()
+    # in (y, z): (0.3, 0.5)-(0.7, 0.5), and (0.5, 0.3)-(0.5, 0.5) whose end lies on the first
+    trace = np.array([[0, 0.3, 0.5], [0, 0.7, 0.5], [0, 0.5, 0.3], [0, 0.5, 0.5]])
+    apex = np.array([[0.05, 0.5, 0.55], [0.05, 0.45, 0.4]])
+    ids = reg.add(np.vstack([trace, apex]), inclusion=3)
+    iface = ids[np.array([[0, 1, 4], [2, 3, 5]])]
+
+    def edge_vals(line_axis, at):
+        return np.linspace(0.0, 1.0, 11)
+
+    with pytest.raises(MeshingError, match=r"face 0: a trace of the inclusion near x = \(0\.0, 0\.\d+, 0\.\d+\)") as err:
+        _mesh_face(0, reg, iface, edge_vals, ms, as_size_fn(0.1, ms.box, periodic), SurfaceConfig())
+    assert err.value.stage == "faces" and err.value.inclusion == 3
+    assert ("numpy.roll" in str(err.value)) == periodic

@@ -100,8 +100,9 @@ def test_constrained_delaunay_keeps_polygon_and_raises_on_node_on_segment():
     _check_triangulation(pts, tri, 1.0)
     # a node exactly on a segment cannot be flipped around
     pts2 = np.vstack([pts[:4], [[0.2, 0.5], [0.8, 0.5], [0.5, 0.5], [0.5, 0.8], [0.5, 0.2]]])
-    with pytest.raises(MeshingError, match="lies on the constrained segment"):
+    with pytest.raises(MeshingError, match="lies on the constrained segment") as err:
         recover_segments_by_flips(pts2, delaunay_triangles(pts2), np.array([[4, 5]]))
+    assert err.value.segment == (4, 5)  # so that the face mesher can say whose trace it is
 
 
 def test_split_mirrors_box_segments_and_projects_interfaces():
