@@ -252,12 +252,14 @@ def case_fibres_crossing(out: Path, n=40):
     return p, [], "two endless fibres, along z and along x, r 0.12"
 
 
-def case_gyroid(out: Path, n=40):
-    t = 2 * np.pi * _grid(n)
-    s, c = np.sin(t), np.cos(t)
-    g = s[..., 0] * c[..., 1] + s[..., 1] * c[..., 2] + s[..., 2] * c[..., 0]
-    np.save(p := out / "gyroid.npy", (g - 0.4) / (2 * np.pi))
-    return p, [], "gyroid network g < 0.4, one inclusion percolating along x, y, z"
+def _gyroid(name: str, level: float, n: int):
+    def build(out: Path):
+        t = 2 * np.pi * _grid(n)
+        s, c = np.sin(t), np.cos(t)
+        g = s[..., 0] * c[..., 1] + s[..., 1] * c[..., 2] + s[..., 2] * c[..., 0]
+        np.save(p := out / f"{name}.npy", (g - level) / (2 * np.pi))
+        return p, [], f"gyroid network g < {level}, {n}^3, one inclusion percolating along x, y, z"
+    return build
 
 
 CASES = {
@@ -282,7 +284,8 @@ CASES = {
     "fibre_diagonal": _straight_fibre("fibre_diagonal", (0.5, 0.5, 0.5), (1, 0, 1), 0.15, 40,
                                       "endless fibre along (1, 0, 1), r 0.15: percolates along x and z"),
     "fibres_crossing": case_fibres_crossing,
-    "gyroid": case_gyroid,
+    "gyroid": _gyroid("gyroid", 0.4, 40),
+    "gyroid_03": _gyroid("gyroid_03", 0.3, 48),
     "grf_perc_s1": _excursion(1, "0.2", "0.15", "48", "grf_perc", "percolating blobs"),
     "grf_perc_s2": _excursion(2, "0.2", "0.15", "48", "grf_perc", "percolating blobs"),
 }
