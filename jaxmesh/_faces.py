@@ -341,7 +341,7 @@ def _trace_error(axis: int, ends: np.ndarray, reg: _Registry, P: np.ndarray, per
     cannot hold: it names the inclusions and the place, and what resolves it."""
     ids = sorted({int(reg.inclusion[i]) for i in ends} - {0})
     x = tuple(round(float(v), 4) for v in P[ends[0]])
-    whose = f"inclusions {ids}" if len(ids) > 1 else "the inclusion"
+    whose = f"inclusions {ids}" if len(ids) > 1 else "the inclusion" if ids else "an inclusion"
     remedy = ("a smaller iis / h_max, a smoother field, or the periodic field shifted by a few grid steps "
               "(numpy.roll) so that the box planes cut it elsewhere," if periodic else
               "a smaller iis / h_max or a smoother field")
