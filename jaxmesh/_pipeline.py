@@ -19,6 +19,17 @@ import numpy as np
 from ._errors import MeshingError
 
 
+_FIELD_HINTS = {
+    "iis": "sizes are in box units, e.g. iis=0.05 for a unit box",
+    "h_max": "sizes are in box units, e.g. h_max=0.2 for a unit box",
+    "h": "sizes are in box units, e.g. h=0.05 for a unit box",
+    "nb_el": "a count of elements across the narrowest gaps, e.g. nb_el=3 (fractions allowed, e.g. 0.5)",
+    "curv_alpha": "h = curv_alpha / |curvature|, e.g. curv_alpha=0.5 (smaller: finer on curved interfaces)",
+    "grad": "the size function's gradient limit, e.g. grad=0.3 (h grows by at most 0.3 per unit length)",
+    "max_elements": "a tetrahedron count, e.g. max_elements=5e6, or None for no limit",
+}
+
+
 @dataclasses.dataclass(frozen=True)
 class MeshConfig:
     """Parameters of :func:`mesh_rve`, validated on construction.
@@ -78,8 +89,7 @@ class MeshConfig:
                 continue
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or value <= 0:
                 raise ValueError(
-                    f"MeshConfig.{name}: expected a positive finite number, got {value!r}; "
-                    "hint: sizes are in box units, e.g. iis=0.05 for a unit box"
+                    f"MeshConfig.{name}: expected a positive finite number, got {value!r}; hint: {_FIELD_HINTS[name]}"
                 )
         if self.backend not in ("conforming", "tetwild"):
             raise ValueError(f"MeshConfig.backend: expected 'conforming' or 'tetwild', got {self.backend!r}")

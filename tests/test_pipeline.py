@@ -268,3 +268,15 @@ def test_a_mesh_larger_than_max_elements_is_refused_before_the_surfaces():
         mesh_rve(ms, MeshConfig(h=0.01, max_elements=1e6))  # 8.5e6 regular tets, 2.1e7 expected
     with pytest.raises(ValueError, match="MeshConfig.max_elements"):
         MeshConfig(max_elements=-1)
+
+
+@pytest.mark.parametrize("name, bad, hint", [
+    ("iis", -1.0, "box units, e.g. iis=0.05"),
+    ("h_max", 0.0, "box units, e.g. h_max=0.2"),
+    ("nb_el", 0.0, "elements across the narrowest gaps, e.g. nb_el=3"),
+    ("curv_alpha", float("nan"), "e.g. curv_alpha=0.5"),
+    ("grad", -0.3, "gradient limit, e.g. grad=0.3"),
+])  # fmt: skip
+def test_a_bad_parameter_gets_a_hint_about_that_parameter(name, bad, hint):
+    with pytest.raises(ValueError, match=rf"MeshConfig\.{name}: expected a positive finite number, got .*hint: .*{hint}"):
+        MeshConfig(**{name: bad})
