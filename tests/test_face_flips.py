@@ -55,3 +55,26 @@ def test_box_faces_stay_periodic_translates():
     from jaxmesh._volume_recover import missing_triangles
 
     assert not missing_triangles(out.triangles, Delaunay(out.points).simplices, len(out.points)).any()
+
+
+def test_an_interface_flip_never_lays_a_triangle_flat_on_a_box_plane():
+    """Where an interface grazes x = 0, the Delaunay diagonal of a pair can join three trace nodes.
+
+    Found on a Gaussian excursion set (seed 42): the flipped triangle lay on the box face, which
+    held the same triangle, and the labels of the volume step conflicted there.
+    """
+    from jaxmesh._face_flips import delaunay_interfaces
+    from jaxmesh._surface_mesh import INTERFACE, SurfaceMesh
+
+    # edge a-b (b just off the plane) between c and d on the plane: not Delaunay, its flip is c-d
+    pts = np.array([[0.0, 0.3, 0.5], [4e-4, 0.7, 0.5], [0.0, 0.5, 0.6], [0.0, 0.5, 0.4]])
+    tris = np.array([[0, 1, 2], [1, 0, 3]])
+    free, flips = lawson_flips(pts, tris, np.zeros(2, int))
+    assert flips == 1  # without the box planes, the flip happens
+    assert (pts[free][:, :, 0] == 0.0).all(axis=1).any()
+    surface = SurfaceMesh(pts, tris, np.tile([1, 0], (2, 1)), np.full(2, INTERFACE), np.ones(4, int), (1.0, 1.0, 1.0))
+    out, flips = delaunay_interfaces(surface)
+    assert flips == 0 and np.array_equal(out.triangles, tris)
+    # a pair off the planes still flips
+    shifted = SurfaceMesh(pts + [0.1, 0.0, 0.0], tris, surface.sides, surface.kind, surface.node_inclusion, surface.box)
+    assert delaunay_interfaces(shifted)[1] == 1
