@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from scipy.spatial import Delaunay, cKDTree
@@ -590,3 +592,30 @@ def test_bcc_lattice_in_slabs_is_the_full_lattice_masked(chunk):
         got = _bcc_where(box, a, h_fn, lo, hi, chunk=chunk)
         assert 0 < len(expected) < len(full)
         np.testing.assert_array_equal(got, expected)
+
+
+def _patch_of_triangles(centre, size=0.002, normal_axis=0):
+    """A small fan of 6 triangles around centre, flat across normal_axis, as a SurfaceMesh."""
+    u, v = [a for a in range(3) if a != normal_axis]
+    ring = np.zeros((6, 3))
+    ring[:, u], ring[:, v] = size * np.cos(np.arange(6) * np.pi / 3), size * np.sin(np.arange(6) * np.pi / 3)
+    points = np.concatenate([[centre], centre + ring])
+    tris = np.array([[0, 1 + k, 1 + (k + 1) % 6] for k in range(6)])
+    sides = np.tile([1, 0], (6, 1))
+    return SurfaceMesh(points, tris, sides, np.full(6, INTERFACE), np.ones(len(points), int), (1.0, 1.0, 1.0), {}, {},
+                       False)
+
+
+@pytest.mark.parametrize("centre, cause", [
+    ((0.9995, 0.52, 0.81), "nearly tangent to the plane"),  # the plain-box excursion set at 0.45
+    ((0.9995, 0.52, 0.003), "from a box edge"),
+    ((0.5, 0.5, 0.5), "interfaces closer to each other"),
+])
+def test_a_failed_recovery_names_the_place_and_the_likely_cause(centre, cause):
+    from jaxmesh._volume import _missing_place
+
+    surface = _patch_of_triangles(np.asarray(centre))
+    message = _missing_place(surface, np.ones(surface.n_triangles, bool))
+    place = re.search(r"near x = \(([^)]*)\)", message).group(1)
+    assert np.allclose([float(v) for v in place.split(",")], centre, atol=0.003) and cause in message
+    assert ("x_0 = L" in message) == (cause == "nearly tangent to the plane")
