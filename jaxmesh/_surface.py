@@ -299,7 +299,7 @@ def _relax(points, tris, on_plane, phi_fn, h_fn, box, truss: TrussConfig, cut: b
         if cut:
             cells = triangle_cells(q[:n], state["tris"], box)
             allowed = lambda t1, t2: (cells[t1] == cells[t2]).all(axis=1)  # noqa: E731
-        state["tris"], _ = flip_edges(q[:n], state["tris"], allowed)
+        state["tris"], _ = flip_edges(q[:n], state["tris"], allowed, on_plane=on_plane)
         return state["tris"]
 
     res = relax(p, triangulate, h_fn, cons, surface_phi_fn=phi_fn, config=truss)
@@ -373,7 +373,7 @@ def improve(points, tris, on_plane, phi_fn, h_fn, box, config: SurfaceConfig, cu
             points[new], _, _ = project(phi_fn, points[new], flags, config.newton_steps)
         cells = triangle_cells(points, tris, box) if cut else None
         allowed = (lambda t1, t2: (cells[t1] == cells[t2]).all(axis=1)) if cut else None
-        tris, _ = flip_edges(points, tris, allowed)
+        tris, _ = flip_edges(points, tris, allowed, on_plane=on_plane)
         worst = min_angles(points, tris).min()
         for attempt in range(2):
             cfg = truss if attempt == 0 else dataclasses.replace(truss, dt=truss.dt * truss.dt_retry_factor)

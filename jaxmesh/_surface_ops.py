@@ -98,15 +98,19 @@ def flip_edges(
     max_rounds: int = 20,
     min_cos: float = 0.5,
     tol: float = 1e-6,
+    on_plane: np.ndarray | None = None,
 ) -> tuple[np.ndarray, int]:
     """Flip edges of a closed surface where the smaller quality of the two triangles rises.
 
     A flip needs a nearly flat pair (normals' cosine > min_cos before and after), a new edge that
-    does not exist yet and end vertices of degree > 3 (the surface stays a manifold).
+    does not exist yet and end vertices of degree > 3 (the surface stays a manifold). With
+    on_plane, a flip that would lay a triangle flat on a box plane (three trace nodes, where the
+    surface grazes the plane) is refused: the box face would hold the same triangle after the cut.
 
     Args:
         points: (n, 3). tris: (t, 3) oriented. allowed: optional (t1, t2) -> (k,) bool, pairs of
             triangles whose common edge may flip (e.g. not a trace edge).
+        on_plane: optional (n, 3) bool, coordinate a of the node held exactly on a box plane.
     Returns:
         (triangles, number of flips).
     """
@@ -124,6 +128,11 @@ def flip_edges(
         new2 = np.stack([d, v, c], 1)
         m1, m2 = _normals(points[new1]), _normals(points[new2])
         ok &= (np.sum(m1 * m2, 1) > min_cos) & (np.sum(m1 * (n1 + n2), 1) > 0) & (np.sum(m2 * (n1 + n2), 1) > 0)
+        if on_plane is not None:
+            for new in (new1, new2):
+                x = points[new]  # (k, 3 nodes, 3 axes)
+                same = (x[:, 0] == x[:, 1]) & (x[:, 1] == x[:, 2])
+                ok &= ~(on_plane[new].all(axis=1) & same).any(axis=1)
         q = cell_quality(points, tri)
         gain = np.minimum(cell_quality(points, new1), cell_quality(points, new2)) - np.minimum(q[t1], q[t2])
         cand = np.flatnonzero(ok & (gain > tol))

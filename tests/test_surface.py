@@ -5,6 +5,7 @@ from collections import Counter
 
 import numpy as np
 import pytest
+from scipy.spatial import ConvexHull
 
 from jaxmesh._intersect import intersecting_pairs
 from jaxmesh._quality import cell_quality, min_angles
@@ -55,6 +56,25 @@ def test_flips_raise_quality_and_keep_surface(sphere):
     assert n > 0 and _closed(t2)
     assert cell_quality(p, t2).min() >= cell_quality(p, t).min() - 1e-12
     assert np.sort(cell_quality(p, t2))[:20].mean() > np.sort(cell_quality(p, t))[:20].mean()
+
+
+def test_a_flip_never_lays_a_triangle_flat_on_a_box_plane():
+    # nodes 0, 1, 2 on x = 0 (a trace), node 3 just beyond it: the skinny pair (0, 3, 1), (3, 0, 2)
+    # gains quality by flipping to (0, 2, 1), (2, 3, 1), and (0, 2, 1) would lie flat on the plane
+    p = np.array([[0, -1, 0], [0, 0, 0.3], [0, 0, -0.3], [-0.05, 1, 0], [0.6, -1, 0.5], [0.6, -1, -0.5],
+                  [0.6, 1, 0.5], [0.6, 1, -0.5], [1, 0, 0]], float)
+    t = ConvexHull(p).simplices
+    inward = np.einsum("ij,ij->i", np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]]), p[t[:, 0]] - p.mean(0)) < 0
+    t[inward] = t[inward][:, [0, 2, 1]]
+    on_plane = np.zeros((len(p), 3), bool)
+    on_plane[:3, 0] = True
+
+    def flat(tris):
+        return int(np.all(p[tris][:, :, 0] == 0.0, axis=1).sum())
+
+    assert flat(t) == 0 and flat(flip_edges(p, t)[0]) == 1  # the unguarded flip does it
+    guarded, _ = flip_edges(p, t, on_plane=on_plane)
+    assert flat(guarded) == 0 and _closed(guarded)
 
 
 def test_unfold_removes_a_fold_and_keeps_nodes_on_the_level_set(sphere):
