@@ -51,6 +51,9 @@ def _progress(stage: str, message: str, t0: float) -> None:
 
 
 _KEPT_FRACTION_NOTE = 0.8  # grf: say why when dropped components take more than a fifth
+# sphere/ellipsoid: the mesher refuses inclusions closer than one grid step, so the default gap
+# keeps at least that, with a tenth of a step to spare (ellipsoid gaps are solved to a tolerance)
+_DEFAULT_MIN_GAP, _DEFAULT_GAP_STEPS = 0.02, 1.1
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
@@ -85,11 +88,14 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     shape = args.kind
     if args.dim == 2:
         shape = {"sphere": "sphere", "ellipsoid": "ellipsoid"}[shape]
+    step = min(box) / args.grid
+    min_gap = max(_DEFAULT_MIN_GAP, _DEFAULT_GAP_STEPS * step) if args.min_gap is None else args.min_gap
     specs = gen.random_inclusions(
         box, n=args.n, volume_fraction=args.volume_fraction, shape=shape,
         radius=(args.radius, args.radius_std), aspect=(1.0, args.max_aspect),
-        min_gap=args.min_gap, box_gap=args.box_gap, seed=args.seed,
+        min_gap=min_gap, box_gap=args.box_gap, seed=args.seed,
     )
+    _check_meshable(gen, specs, box, grid_shape, min_gap, step)
     gen.write_input(args.output, specs, box, grid_shape)
     volume = sum(_spec_volume(s) for s in specs)
     box_volume = math.prod(box)
@@ -102,6 +108,19 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         print(f"    note: --n {args.n} was reached first (volume fraction {volume / box_volume:.4f}, asked "
               f"{args.volume_fraction}): drop --n, or raise it or --radius, to reach the fraction", flush=True)
     return 0
+
+
+def _check_meshable(gen, specs, box, grid_shape, min_gap: float, step: float) -> None:
+    """Run the input check of `jaxmesh mesh` on the drawn RVE, so that generate never writes a file
+    the mesher refuses (a gap under one grid step, an inclusion too small for the grid)."""
+    try:
+        gen.microstructure_from_specs(specs, box, grid_shape)
+    except ValueError as err:
+        hint = (f" Here: --min-gap {min_gap:g} is under one grid step ({step:.4g}): give --min-gap "
+                f"{_DEFAULT_GAP_STEPS * step:.3g} or more, or a finer --grid." if min_gap < step else
+                " Here: a finer --grid or a larger --radius resolves small inclusions.")
+        raise ValueError(f"the RVE drawn would be refused by `jaxmesh mesh`, so nothing was written: {err}"
+                         + hint) from None
 
 
 def _spec_volume(spec) -> float:
@@ -308,7 +327,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--radius", type=float, default=0.1, help="mean radius (largest semi-axis for ellipsoids)")
     g.add_argument("--radius-std", type=float, default=0.02)
     g.add_argument("--max-aspect", type=float, default=2.0, help="largest aspect ratio for ellipsoids")
-    g.add_argument("--min-gap", type=float, default=0.02, help="guaranteed minimum gap between inclusions")
+    g.add_argument("--min-gap", type=float, default=None,
+                   help="guaranteed minimum gap between inclusions (default: 0.02, or 1.1 grid steps when larger; "
+                        "jaxmesh mesh refuses inclusions closer than one grid step)")
     g.add_argument("--box-gap", type=float, default=None,
                    help="clearance of caps, traces and box-edge crossings from the box planes, edges and corners "
                         "(default: --min-gap; 0 places inclusions anywhere)")

@@ -90,10 +90,33 @@ def test_generate_keeps_inclusions_clear_of_the_box(tmp_path, box_gap):
     rve = tmp_path / "rve.npz"
     extra = [] if box_gap is None else ["--box-gap", box_gap]
     assert main(["generate", str(rve), "--dim", "3", "--kind", "ellipsoid", "--n", "12", "--radius", "0.12",
-                 "--min-gap", "0.03", "--grid", "16", "--seed", "4", *extra]) == 0
+                 "--min-gap", "0.035", "--grid", "32", "--seed", "4", *extra]) == 0
     data = np.load(rve)
     dist = _box_clearance(data["centers"], _shape_matrices(data["axes"], data["rotations"]), data["box"])[0]
-    assert dist.min() >= (0.03 if box_gap is None else 0.08) - 1e-9
+    assert dist.min() >= (0.035 if box_gap is None else 0.08) - 1e-9
+
+
+def test_generate_never_writes_a_file_that_mesh_refuses(tmp_path, capsys):
+    """The mesher refuses inclusions closer than one grid step. At --grid 40 (step 0.025) the default
+    gap follows the grid and the file loads; a --min-gap under one step that gives such pairs is
+    refused before anything is written, with the step and a gap that works."""
+    from jaxmesh import load_input
+
+    out = tmp_path / "b.npz"
+    args = ["generate", str(out), "--kind", "sphere", "--volume-fraction", "0.3", "--radius", "0.12",
+            "--box", "1", "1", "1.5", "--grid", "40", "--seed", "81"]
+    assert main([*args, "--min-gap", "0.02"]) == 2
+    err = capsys.readouterr().err
+    assert "would be refused by `jaxmesh mesh`" in err and "under one grid step (0.025)" in err
+    assert "--min-gap 0.0275" in err and not list(tmp_path.iterdir())
+    assert main(args) == 0
+    data = np.load(out)
+    centers, radii = data["centers"], data["axes"][:, 0]
+    delta = centers[:, None] - centers[None]
+    delta -= np.round(delta / data["box"]) * data["box"]
+    gaps = np.linalg.norm(delta, axis=-1) - radii[:, None] - radii[None]
+    assert gaps[~np.eye(len(radii), dtype=bool)].min() >= 1.1 * 0.025 - 1e-9
+    assert load_input(out).grid_shape == (40, 40, 60)
 
 
 def test_generate_says_when_the_count_stops_it_short_of_the_fraction(tmp_path, capsys):
