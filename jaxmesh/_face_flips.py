@@ -15,6 +15,7 @@ import numpy as np
 
 from ._quality import cross3
 from ._surface_mesh import BOX_FACE, INTERFACE, SurfaceMesh
+from ._surface_ops import in_one_box_plane
 
 
 def _angle_at(apex: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -34,7 +35,7 @@ def _normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
 
 
 def lawson_flips(points: np.ndarray, tris: np.ndarray, region: np.ndarray, *, max_rounds: int = 200,
-                 max_normal_turn_deg: float = 30.0, planes: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+                 max_normal_turn_deg: float = 30.0, on_plane: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Flip edges that are not locally Delaunay (opposite angles summing to more than pi).
 
     Only edges shared by exactly two of `tris` with the same `region` are candidates; a flip is
@@ -44,8 +45,8 @@ def lawson_flips(points: np.ndarray, tris: np.ndarray, region: np.ndarray, *, ma
 
     Args:
         points: (n, 3) nodes; tris: (t, 3) consistently oriented; region: (t,) ids.
-        planes: optional (n, k) bool, the planes each node lies on: a flip that would make a triangle
-            with all three nodes on one plane is refused.
+        on_plane: optional (n, 3) bool, coordinate a of the node exactly on a box plane: a flip that
+            would make a triangle with all three nodes on one box plane is refused.
     Returns:
         (flipped triangles (t, 3), same orientation and region per row; number of flips).
     """
@@ -82,9 +83,8 @@ def lawson_flips(points: np.ndarray, tris: np.ndarray, region: np.ndarray, *, ma
                 ok &= np.einsum("ij,ij->i", nn, mean) > min_cos * np.linalg.norm(nn, axis=1)
             new_key = np.minimum(ic[bad], id_[bad]) * n + np.maximum(ic[bad], id_[bad])
             ok &= ~np.isin(new_key, ks)
-            if planes is not None:
-                for new in (new1, new2):
-                    ok &= ~(planes[new[:, 0]] & planes[new[:, 1]] & planes[new[:, 2]]).any(axis=1)
+            if on_plane is not None:
+                ok &= ~(in_one_box_plane(points, on_plane, new1) | in_one_box_plane(points, on_plane, new2))
             bad = bad[ok]
         if not len(bad):
             break
@@ -114,8 +114,8 @@ def delaunay_interfaces(surface: SurfaceMesh) -> tuple[SurfaceMesh, int]:
     tris = surface.triangles.copy()
     on = np.nonzero(surface.kind == INTERFACE)[0]
     box, points = np.asarray(surface.box, dtype=float), surface.points
-    planes = np.concatenate([points == 0.0, points == box], axis=1)  # box-plane nodes lie exactly on it
-    tris[on], flips = lawson_flips(points, tris[on], surface.sides[on, 0], planes=planes)
+    on_plane = (points == 0.0) | (points == box)  # box-plane nodes lie exactly on it
+    tris[on], flips = lawson_flips(points, tris[on], surface.sides[on, 0], on_plane=on_plane)
     out = SurfaceMesh(surface.points, tris, surface.sides, surface.kind, surface.node_inclusion, surface.box,
                       surface.periodic_pairs, dict(surface.metadata), surface.periodic)
     return out, flips

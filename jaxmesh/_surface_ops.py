@@ -129,10 +129,7 @@ def flip_edges(
         m1, m2 = _normals(points[new1]), _normals(points[new2])
         ok &= (np.sum(m1 * m2, 1) > min_cos) & (np.sum(m1 * (n1 + n2), 1) > 0) & (np.sum(m2 * (n1 + n2), 1) > 0)
         if on_plane is not None:
-            for new in (new1, new2):
-                x = points[new]  # (k, 3 nodes, 3 axes)
-                same = (x[:, 0] == x[:, 1]) & (x[:, 1] == x[:, 2])
-                ok &= ~(on_plane[new].all(axis=1) & same).any(axis=1)
+            ok &= ~(in_one_box_plane(points, on_plane, new1) | in_one_box_plane(points, on_plane, new2))
         q = cell_quality(points, tri)
         gain = np.minimum(cell_quality(points, new1), cell_quality(points, new2)) - np.minimum(q[t1], q[t2])
         cand = np.flatnonzero(ok & (gain > tol))
@@ -266,8 +263,9 @@ def straddling(points: np.ndarray, tris: np.ndarray, box) -> np.ndarray:
     return ((p < lo) | (p > hi)).any(axis=(1, 2))
 
 
-def _in_one_plane(points, on_plane, tris) -> np.ndarray:
-    """(t,) bool: triangles whose three vertices lie on one box plane (same axis, same value)."""
+def in_one_box_plane(points, on_plane, tris) -> np.ndarray:
+    """(t,) bool: triangles whose three vertices lie on one box plane (same axis, same value).
+    on_plane: (n, 3) bool, coordinate a of the node held exactly on a box plane."""
     flags = on_plane[tris].all(axis=1)
     p = points[tris]
     return (flags & (p[:, 0] == p[:, 1]) & (p[:, 1] == p[:, 2])).any(axis=1)
@@ -285,7 +283,7 @@ def _collapse_shapes_ok(points, tris, on_plane, pairs, n: int, min_cos: float, m
     moved = ~np.any(old == keep[owner][:, None], axis=1)  # the two triangles on the edge vanish
     old, owner = old[moved], owner[moved]
     new = np.where(old == drop[owner][:, None], keep[owner][:, None], old)
-    bad = _in_one_plane(points, on_plane, new)  # a piece beyond a plane would fold flat onto it
+    bad = in_one_box_plane(points, on_plane, new)  # a piece beyond a plane would fold flat onto it
     bad |= np.sum(_normals(points[old]) * _normals(points[new]), axis=1) < min_cos
     bad |= cell_quality(points, new) < min_quality
     if max_length is not None:  # the ring's farthest node from the kept one
