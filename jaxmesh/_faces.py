@@ -306,11 +306,11 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
         tri, _ = improve_by_flips(uv, tri, seg)
         uv, tri = _refine_face(uv, tri, seg, nf, h2, box2, config.face_min_angle)
     except SegmentRecoveryError as err:  # traces that cross or fold: say whose and where
-        raise _trace_error(axis, face[list(err.segment)], reg, P, periodic, 1) from None
+        raise _trace_error(axis, face[list(err.segment)], reg, P, ms, h_fn, 1) from None
     lat = uv[nf:]
     missing = missing_segments(tri, seg, len(uv))
     if missing.any():
-        raise _trace_error(axis, face[seg[missing].ravel()], reg, P, periodic, int(missing.sum()))
+        raise _trace_error(axis, face[seg[missing].ravel()], reg, P, ms, h_fn, int(missing.sum()))
     ncomp, comp = flood_fill(tri, seg, len(uv))
     cen = uv[tri].mean(axis=1)
     c3 = np.full((len(tri), 3), side)
@@ -335,20 +335,29 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
     return np.vstack([ids0[tri][:, ::-1], ids1[tri]]), np.vstack([sides, sides])
 
 
-def _trace_error(axis: int, ends: np.ndarray, reg: _Registry, P: np.ndarray, periodic: bool,
-                 count: int) -> MeshingError:
+def _trace_error(axis: int, ends: np.ndarray, reg: _Registry, P: np.ndarray, ms, h_fn, count: int) -> MeshingError:
     """The error for trace segments (node ids `ends`, all trace nodes) that the face triangulation
-    cannot hold: it names the inclusions and the place, and what resolves it."""
+    cannot hold: it names the inclusions and the place, and what resolves it there."""
     ids = sorted({int(reg.inclusion[i]) for i in ends} - {0})
     x = tuple(round(float(v), 4) for v in P[ends[0]])
     whose = f"inclusions {ids}" if len(ids) > 1 else "the inclusion" if ids else "an inclusion"
-    remedy = ("a smaller iis / h_max, a smoother field, or the periodic field shifted by a few grid steps "
-              "(numpy.roll) so that the box planes cut it elsewhere," if periodic else
-              "a smaller iis / h_max or a smoother field")
+    h_here = float(evaluate_size(h_fn, P[ends[:1]])[0])
+    step = float(np.min(np.asarray(ms.box, float) / np.asarray(ms.grid_shape)))
+    if h_here < step:  # a finer mesh cannot separate traces that pinch below the field's resolution
+        shift = ("--roll auto, or the field rolled by a few samples (numpy.roll)" if ms.periodic else
+                 "one grid layer more or less at that face, the box length changed to match")
+        cause = (f"they meet closer than the mesh there separates, and it is already finer (h = {h_here:.2g}) than "
+                 f"the grid step ({step:.2g}): a feature below the grid's resolution, such as a saddle of the field "
+                 "on the box plane, which a smaller iis will not resolve")
+        remedy = f"smooth the field there, or move the box plane off the place ({shift})"
+    else:
+        cause = ("an inclusion surface folds, or crosses the box plane at a saddle, where the mesh size exceeds "
+                 "its features")
+        remedy = ("a smaller iis / h_max, a smoother field, or the periodic field shifted by a few grid steps "
+                  "(numpy.roll) so that the box planes cut it elsewhere" if ms.periodic else
+                  "a smaller iis / h_max or a smoother field")
     return MeshingError("faces", f"face {axis}: a trace of {whose} near x = {x} loses {count} segment(s) in the "
-                        "face triangulation (interface traces cross or touch: an inclusion surface folds, or "
-                        f"crosses the box plane at a saddle, where the mesh size exceeds its features; {remedy} "
-                        "resolves them)",
+                        f"face triangulation (interface traces cross or touch: {cause}). Hint: {remedy}.",
                         ids[0] if len(ids) == 1 else None)
 
 

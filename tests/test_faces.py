@@ -243,3 +243,27 @@ def test_a_trace_node_on_another_trace_segment_is_a_faces_error_naming_the_inclu
         _mesh_face(0, reg, iface, edge_vals, ms, as_size_fn(0.1, ms.box, periodic), SurfaceConfig())
     assert err.value.stage == "faces" and err.value.inclusion == 3
     assert ("numpy.roll" in str(err.value)) == periodic
+
+
+@pytest.mark.parametrize("periodic", [True, False])
+def test_a_trace_error_offers_a_smaller_iis_only_where_the_mesh_is_coarser_than_the_grid(periodic):
+    """Where the traces cross although the mesh there is already finer than the grid step (a saddle of
+    the field on the box plane, below the grid's resolution), a smaller iis cannot help: the hint says
+    so and offers moving the box plane instead; where the mesh is coarser, it offers a smaller iis."""
+    from types import SimpleNamespace
+
+    from jaxmesh._faces import _Registry, _trace_error
+    from jaxmesh._surface import as_size_fn
+
+    reg = _Registry()
+    ends = reg.add(np.array([[0.0, 0.3, 0.6], [0.0, 0.31, 0.6]]), inclusion=2)
+    ms = SimpleNamespace(box=(1.0, 1.0, 1.0), grid_shape=(48, 48, 48), periodic=periodic)
+    for h, finer in ((0.004, True), (0.05, False)):
+        err = _trace_error(0, ends, reg, reg.array(), ms, as_size_fn(h, ms.box, periodic), 1)
+        text = str(err)
+        assert err.stage == "faces" and err.inclusion == 2 and "near x = (0.0, 0.3, 0.6)" in text
+        assert ("a smaller iis will not resolve" in text) == finer
+        assert ("Hint: a smaller iis / h_max" in text) == (not finer)
+        if finer:
+            assert "grid step (0.021)" in text and "h = 0.004" in text
+            assert ("--roll auto" in text) == periodic and ("grid layer more or less" in text) == (not periodic)
