@@ -95,7 +95,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         radius=(args.radius, args.radius_std), aspect=(1.0, args.max_aspect),
         min_gap=min_gap, box_gap=args.box_gap, seed=args.seed,
     )
-    _check_meshable(gen, specs, box, grid_shape, min_gap, step)
+    _check_meshable(specs, box, grid_shape, min_gap, step)
     gen.write_input(args.output, specs, box, grid_shape)
     volume = sum(_spec_volume(s) for s in specs)
     box_volume = math.prod(box)
@@ -110,11 +110,13 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_meshable(gen, specs, box, grid_shape, min_gap: float, step: float) -> None:
+def _check_meshable(specs, box, grid_shape, min_gap: float, step: float) -> None:
     """Run the input check of `jaxmesh mesh` on the drawn RVE, so that generate never writes a file
     the mesher refuses (a gap under one grid step, an inclusion too small for the grid)."""
+    from ._generate import microstructure_from_specs
+
     try:
-        gen.microstructure_from_specs(specs, box, grid_shape)
+        microstructure_from_specs(specs, box, grid_shape)
     except ValueError as err:
         hint = (f" Here: --min-gap {min_gap:g} is under one grid step ({step:.4g}): give --min-gap "
                 f"{_DEFAULT_GAP_STEPS * step:.3g} or more, or a finer --grid." if min_gap < step else
