@@ -335,7 +335,15 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
     return np.vstack([ids0[tri][:, ::-1], ids1[tri]]), np.vstack([sides, sides])
 
 
-def _trace_error(axis: int, ends: np.ndarray, reg: _Registry, P: np.ndarray, ms, h_fn, count: int) -> MeshingError:
+class _TraceError(MeshingError):
+    """A trace that the face triangulation cannot hold, with the ids of the inclusions it belongs to."""
+
+    def __init__(self, message: str, inclusions: tuple[int, ...]):
+        super().__init__("faces", message, inclusions[0] if len(inclusions) == 1 else None)
+        self.inclusions = inclusions
+
+
+def _trace_error(axis: int, ends: np.ndarray, reg: _Registry, P: np.ndarray, ms, h_fn, count: int) -> _TraceError:
     """The error for trace segments (node ids `ends`, all trace nodes) that the face triangulation
     cannot hold: it names the inclusions and the place, and what resolves it there."""
     ids = sorted({int(reg.inclusion[i]) for i in ends} - {0})
@@ -356,9 +364,8 @@ def _trace_error(axis: int, ends: np.ndarray, reg: _Registry, P: np.ndarray, ms,
         remedy = ("a smaller iis / h_max, a smoother field, or the periodic field shifted by a few grid steps "
                   "(numpy.roll) so that the box planes cut it elsewhere" if ms.periodic else
                   "a smaller iis / h_max or a smoother field")
-    return MeshingError("faces", f"face {axis}: a trace of {whose} near x = {x} loses {count} segment(s) in the "
-                        f"face triangulation (interface traces cross or touch: {cause}). Hint: {remedy}.",
-                        ids[0] if len(ids) == 1 else None)
+    return _TraceError(f"face {axis}: a trace of {whose} near x = {x} loses {count} segment(s) in the face "
+                       f"triangulation (interface traces cross or touch: {cause}). Hint: {remedy}.", tuple(ids))
 
 
 def _periodic_pairs(reg: _Registry, box) -> dict[int, np.ndarray]:
@@ -455,6 +462,38 @@ def _gradient_norm(microstructure, x: np.ndarray) -> float:
     return float(np.linalg.norm((values[:3] - values[3:]) / (2 * d)))
 
 
+def _resample(microstructure, surfaces: dict, ids, scale: float, h_fn, config: SurfaceConfig, resampled: dict):
+    """Mesh the inclusions `ids` again at `scale` times the marching-cubes step, in `surfaces`: the
+    sampling decides how a surface passes a saddle of the field near zero, and another one often
+    passes clean (its triangles no longer cross, its traces no longer touch on a box face)."""
+    resampling = dataclasses.replace(config, mc_step=config.mc_step * scale)
+    for inc in microstructure.inclusions:
+        if inc.id in ids:
+            try:
+                surfaces[inc.id] = mesh_inclusion(inc, h_fn, microstructure.box, resampling, microstructure.periodic)
+            except MeshingError:
+                pass  # that sampling fails otherwise: keep the last surface, try the next one
+    resampled.update({int(i): scale for i in ids})
+
+
+def _assemble_resampling(microstructure, surfaces: dict, h_fn, config: SurfaceConfig, t0: float,
+                         resampled: dict) -> SurfaceMesh:
+    """_assemble, with the inclusions of a trace that a box face cannot hold sampled again (at each of
+    _RESAMPLE_SCALES) before the error stands."""
+    tried = []
+    for scale in (*_RESAMPLE_SCALES, None):
+        try:
+            return _assemble(microstructure, surfaces, h_fn, config, t0)
+        except _TraceError as err:
+            if scale is None or not err.inclusions:
+                if not tried:
+                    raise
+                raise MeshingError("faces", f"{err.message} (inclusions {sorted(set(tried))} also resampled at "
+                                   f"{list(_RESAMPLE_SCALES)} of the marching-cubes step)", err.inclusion) from None
+            tried += err.inclusions
+            _resample(microstructure, surfaces, err.inclusions, scale, h_fn, config, resampled)
+
+
 def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig()) -> SurfaceMesh:
     """Closed surface mesh of a 3D RVE: inclusion interfaces cut by the box plus box faces.
 
@@ -487,8 +526,8 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig())
     h_fn = as_size_fn(h, box, periodic)
     t0 = time.perf_counter()
     surfaces = {inc.id: mesh_inclusion(inc, h_fn, box, config, periodic) for inc in microstructure.inclusions}
-    mesh = _assemble(microstructure, surfaces, h_fn, config, t0)
     resampled, fewest = {}, None
+    mesh = _assemble_resampling(microstructure, surfaces, h_fn, config, t0, resampled)
     for scale in (*_RESAMPLE_SCALES, None):
         if not config.check_intersections:
             break
@@ -499,20 +538,11 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig())
             break
         if fewest is None or len(bad) < len(fewest[1]):
             fewest = (mesh, bad)
-        # the marching-cubes sampling decides how a surface passes a saddle of the field near
-        # zero; another sampling of the inclusions whose own triangles cross often passes clean
         crossing = np.unique(mesh.sides[bad.reshape(-1)][mesh.kind[bad.reshape(-1)] == INTERFACE, 0])
         if scale is None or not len(crossing):
             _raise_intersections(microstructure, *fewest, resampled)  # where the field is worst resolved
-        resampled.update({int(i): scale for i in crossing})
-        resampling = dataclasses.replace(config, mc_step=config.mc_step * scale)
-        for inc in microstructure.inclusions:
-            if inc.id in crossing:
-                try:
-                    surfaces[inc.id] = mesh_inclusion(inc, h_fn, box, resampling, periodic)
-                except MeshingError:
-                    pass  # that sampling fails otherwise: keep the last surface, try the next one
-        mesh = _assemble(microstructure, surfaces, h_fn, config, t0)
+        _resample(microstructure, surfaces, crossing, scale, h_fn, config, resampled)
+        mesh = _assemble_resampling(microstructure, surfaces, h_fn, config, t0, resampled)
     mesh.metadata["resampled_inclusions"] = resampled
     mesh.metadata["n_self_intersections"] = 0 if config.check_intersections else None
     return mesh

@@ -219,6 +219,56 @@ def test_crossing_triangles_under_every_sampling_are_refused_with_the_samplings_
     assert calls == [1.0, 0.8, 1.25]
 
 
+def _trace_crossing_at_steps(monkeypatch, crossing_steps):
+    """mesh_inclusion whose trace on the face x = 0 crosses itself when sampled at an mc_step in
+    crossing_steps: the trace node farthest along y moved, in the plane, just outside the far side of the
+    trace, as traces that pinch at a saddle of a sampled field on the box plane come out."""
+    import jaxmesh._faces as faces
+
+    real = faces.mesh_inclusion
+    calls = []
+
+    def fake(inc, h_fn, box, config, periodic):
+        calls.append(config.mc_step)
+        out = real(inc, h_fn, box, config, periodic)
+        if config.mc_step in crossing_steps:
+            pts = out["points"].copy()
+            on_face = np.flatnonzero(pts[:, 0] == 0.0)
+            centre = pts[on_face].mean(axis=0)
+            i, k = on_face[np.argmax(pts[on_face, 1])], on_face[np.argmin(pts[on_face, 1])]
+            pts[i] = pts[k] + 0.1 * (pts[k] - centre)  # just outside the far side: crosses the trace there
+            out = {**out, "points": pts}
+        return out
+
+    monkeypatch.setattr(faces, "mesh_inclusion", fake)
+    return calls
+
+
+def test_an_inclusion_whose_trace_a_face_cannot_hold_is_sampled_again(monkeypatch):
+    calls = _trace_crossing_at_steps(monkeypatch, {1.0})
+    ms = Microstructure.from_functions([sphere_sdf([0.0, 0.5, 0.5], 0.25)], (1.0, 1.0, 1.0), (32, 32, 32),
+                                       periodic=False)
+    m = mesh_surfaces(ms, 0.06)
+    assert calls == [1.0, 0.8]
+    assert m.metadata["resampled_inclusions"] == {1: 0.8}
+    assert len(intersecting_pairs(m.points, m.triangles)) == 0
+    for region in (0, 1):  # matrix and inclusion closed
+        sel = (m.sides == region).any(axis=1)
+        assert set(_edge_counts(m.triangles[sel])) == {2}, region
+
+
+def test_a_trace_that_no_sampling_fits_is_refused_with_the_samplings_tried(monkeypatch):
+    from jaxmesh._errors import MeshingError
+
+    calls = _trace_crossing_at_steps(monkeypatch, {1.0, 0.8, 1.25})
+    ms = Microstructure.from_functions([sphere_sdf([0.0, 0.5, 0.5], 0.25)], (1.0, 1.0, 1.0), (32, 32, 32),
+                                       periodic=False)
+    with pytest.raises(MeshingError, match=r"face 0: a trace of the inclusion .* \(inclusions \[1\] also "
+                                           r"resampled at \[0.8, 1.25\] of the marching-cubes step\)") as err:
+        mesh_surfaces(ms, 0.06)
+    assert calls == [1.0, 0.8, 1.25] and err.value.stage == "faces" and err.value.inclusion == 1
+
+
 @pytest.mark.parametrize("periodic", [True, False])
 def test_a_trace_node_on_another_trace_segment_is_a_faces_error_naming_the_inclusion(periodic):
     """Two trace segments of inclusion 3 on the face x = 0 where a node of one lies on the other:
