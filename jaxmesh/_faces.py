@@ -479,17 +479,18 @@ def _resample(microstructure, surfaces: dict, ids, scale: float, h_fn, config: S
 def _assemble_resampling(microstructure, surfaces: dict, h_fn, config: SurfaceConfig, t0: float,
                          resampled: dict) -> SurfaceMesh:
     """_assemble, with the inclusions of a trace that a box face cannot hold sampled again (at each of
-    _RESAMPLE_SCALES) before the error stands."""
-    tried = []
+    _RESAMPLE_SCALES) before the error stands; it names the place where the first sampling failed."""
+    tried, first = [], None
     for scale in (*_RESAMPLE_SCALES, None):
         try:
             return _assemble(microstructure, surfaces, h_fn, config, t0)
         except _TraceError as err:
+            first = first or err
             if scale is None or not err.inclusions:
                 if not tried:
                     raise
-                raise MeshingError("faces", f"{err.message} (inclusions {sorted(set(tried))} also resampled at "
-                                   f"{list(_RESAMPLE_SCALES)} of the marching-cubes step)", err.inclusion) from None
+                raise MeshingError("faces", f"{first.message} (inclusions {sorted(set(tried))} also resampled at "
+                                   f"{list(_RESAMPLE_SCALES)} of the marching-cubes step)", first.inclusion) from None
             tried += err.inclusions
             _resample(microstructure, surfaces, err.inclusions, scale, h_fn, config, resampled)
 
