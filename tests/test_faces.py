@@ -258,15 +258,24 @@ def test_an_inclusion_whose_trace_a_face_cannot_hold_is_sampled_again(monkeypatc
 
 
 def test_a_trace_that_no_sampling_fits_is_refused_with_the_samplings_tried(monkeypatch):
+    """The error names the place where the default sampling failed (the user's field as given), then the
+    samplings tried."""
+    import jaxmesh._faces as faces
     from jaxmesh._errors import MeshingError
 
     calls = _trace_crossing_at_steps(monkeypatch, {1.0, 0.8, 1.25})
     ms = Microstructure.from_functions([sphere_sdf([0.0, 0.5, 0.5], 0.25)], (1.0, 1.0, 1.0), (32, 32, 32),
                                        periodic=False)
+    with monkeypatch.context() as m:
+        m.setattr(faces, "_RESAMPLE_SCALES", ())
+        with pytest.raises(MeshingError) as first:
+            mesh_surfaces(ms, 0.06)
+    calls.clear()
     with pytest.raises(MeshingError, match=r"face 0: a trace of the inclusion .* \(inclusions \[1\] also "
                                            r"resampled at \[0.8, 1.25\] of the marching-cubes step\)") as err:
         mesh_surfaces(ms, 0.06)
     assert calls == [1.0, 0.8, 1.25] and err.value.stage == "faces" and err.value.inclusion == 1
+    assert err.value.message.startswith(first.value.message)
 
 
 @pytest.mark.parametrize("periodic", [True, False])
