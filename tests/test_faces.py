@@ -176,9 +176,9 @@ def test_gradient_norm_tells_a_saddle_of_the_field_from_a_distance():
     assert abs(far) < 0.01 and 0.9 < _gradient_norm(ms, np.array([0.175, 0.5, 0.5])) < 1.1
 
 
-def _crossing_at_default_step(monkeypatch, crossing_steps):
-    """mesh_inclusion whose sphere surface crosses itself when sampled at an mc_step in crossing_steps:
-    one node pushed through to the far side, as a fold at a saddle of a sampled field comes out."""
+def _perturbed_at_steps(monkeypatch, steps, perturb):
+    """mesh_inclusion whose points go through perturb (a copy, changed in place) when sampled at an
+    mc_step in steps; returns the list of the mc_steps it is called with."""
     import jaxmesh._faces as faces
 
     real = faces.mesh_inclusion
@@ -187,16 +187,25 @@ def _crossing_at_default_step(monkeypatch, crossing_steps):
     def fake(inc, h_fn, box, config, periodic):
         calls.append(config.mc_step)
         out = real(inc, h_fn, box, config, periodic)
-        if config.mc_step in crossing_steps:
+        if config.mc_step in steps:
             pts = out["points"].copy()
-            centre = pts.mean(axis=0)
-            i = int(np.argmax(pts[:, 0]))
-            pts[i] = 2 * centre - pts[i]  # through the centre to the opposite side of the sphere
+            perturb(pts)
             out = {**out, "points": pts}
         return out
 
     monkeypatch.setattr(faces, "mesh_inclusion", fake)
     return calls
+
+
+def _crossing_at_default_step(monkeypatch, crossing_steps):
+    """The sphere surface crosses itself at the mc_steps in crossing_steps: one node pushed through to the
+    far side, as a fold at a saddle of a sampled field comes out."""
+
+    def through_the_centre(pts):
+        i = int(np.argmax(pts[:, 0]))
+        pts[i] = 2 * pts.mean(axis=0) - pts[i]
+
+    return _perturbed_at_steps(monkeypatch, crossing_steps, through_the_centre)
 
 
 def test_an_inclusion_whose_triangles_cross_is_sampled_again(monkeypatch):
@@ -220,28 +229,17 @@ def test_crossing_triangles_under_every_sampling_are_refused_with_the_samplings_
 
 
 def _trace_crossing_at_steps(monkeypatch, crossing_steps):
-    """mesh_inclusion whose trace on the face x = 0 crosses itself when sampled at an mc_step in
-    crossing_steps: the trace node farthest along y moved, in the plane, just outside the far side of the
-    trace, as traces that pinch at a saddle of a sampled field on the box plane come out."""
-    import jaxmesh._faces as faces
+    """The trace on the face x = 0 crosses itself at the mc_steps in crossing_steps: the trace node
+    farthest along y moved, in the plane, just outside the far side of the trace, as traces that pinch
+    at a saddle of a sampled field on the box plane come out."""
 
-    real = faces.mesh_inclusion
-    calls = []
+    def across_the_trace(pts):
+        on_face = np.flatnonzero(pts[:, 0] == 0.0)
+        centre = pts[on_face].mean(axis=0)
+        i, k = on_face[np.argmax(pts[on_face, 1])], on_face[np.argmin(pts[on_face, 1])]
+        pts[i] = pts[k] + 0.1 * (pts[k] - centre)
 
-    def fake(inc, h_fn, box, config, periodic):
-        calls.append(config.mc_step)
-        out = real(inc, h_fn, box, config, periodic)
-        if config.mc_step in crossing_steps:
-            pts = out["points"].copy()
-            on_face = np.flatnonzero(pts[:, 0] == 0.0)
-            centre = pts[on_face].mean(axis=0)
-            i, k = on_face[np.argmax(pts[on_face, 1])], on_face[np.argmin(pts[on_face, 1])]
-            pts[i] = pts[k] + 0.1 * (pts[k] - centre)  # just outside the far side: crosses the trace there
-            out = {**out, "points": pts}
-        return out
-
-    monkeypatch.setattr(faces, "mesh_inclusion", fake)
-    return calls
+    return _perturbed_at_steps(monkeypatch, crossing_steps, across_the_trace)
 
 
 def test_an_inclusion_whose_trace_a_face_cannot_hold_is_sampled_again(monkeypatch):
