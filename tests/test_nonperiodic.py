@@ -245,3 +245,24 @@ def test_labels_the_box_splits_mesh_one_inclusion_per_part():
     mesh = mesh_rve(ms, MeshConfig(iis=0.1, periodic=False))
     _check_plain_box(mesh, ms)
     assert quality_report(mesh)["n_inclusions"] == 7
+
+
+def test_a_part_the_box_cuts_too_thin_is_refused_as_touching_the_box():
+    """A fibre along y on the plane x = 0, 2.4 grid steps thick: periodic, it is whole and loads; on a
+    plain box its part beside x = 1 is under a step thick, and the error says that this part touches the
+    box and that meshing periodic keeps it whole. A speck inside the box gets no such note."""
+    n = 24
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), -1)
+    dx = X[..., 0] - np.round(X[..., 0])
+    fibre = np.sqrt(dx**2 + (X[..., 2] - 0.5) ** 2) - 1.2 / n
+    phi = np.minimum(fibre, np.linalg.norm(X - 0.5, axis=-1) - 0.2)
+    assert len(Microstructure.from_levelset(phi, periodic=True).inclusions) == 2
+    with pytest.raises(ValueError, match=r"steps thick.* Here inclusion 3 touches the box: .*mesh it periodic") as err:
+        Microstructure.from_levelset(phi, periodic=False)
+    assert "inclusion 1:" not in str(err.value) and "inclusion 2:" not in str(err.value)
+    speck = np.linalg.norm(X - 0.5, axis=-1) - 0.2
+    speck[3, 3, 3] = -0.01
+    with pytest.raises(ValueError, match="negative samples") as err:
+        Microstructure.from_levelset(speck, periodic=False)
+    assert "touches the box" not in str(err.value)

@@ -724,6 +724,15 @@ def size_errors(stats, descriptions) -> str:
             "(e.g. skimage.morphology.remove_small_objects).")
 
 
+def box_cut_small(stats, labels: np.ndarray) -> list[int]:
+    """Ids (1-based) of the inclusions that size_errors refuses and that touch the grid's border."""
+    border = set()
+    for k in range(labels.ndim):
+        border |= set(np.unique(np.take(labels, [0, -1], axis=k)).tolist())
+    return [i for i, (count, thick) in enumerate(stats, start=1)
+            if (count < _MIN_SAMPLES or thick < _MIN_THICKNESS) and i in border]
+
+
 def neck_errors(found, where: str) -> str:
     """The error for necks found in the inputs ((inclusion name, x, chord in steps) each)."""
     listed = [f"{name} narrows to {chord:.2f} steps near x = {tuple(round(float(v), 4) for v in x)}"

@@ -581,6 +581,12 @@ class Microstructure:
         stats = [(int(o.sum()), comp.chord_thickness(f, o)) for f, o in zip(fields, owns)]
         errors = size_errors(stats, descriptions)
         if errors:
+            cut = comp.box_cut_small(stats, labels) if not periodic else []
+            if cut:
+                which = f"inclusion {cut[0]} touches" if len(cut) == 1 else f"inclusions {cut[:10]} touch"
+                errors += (f" Here {which} the box: where the box cuts an inclusion, the part inside can be "
+                           "thinner than the whole; on a periodic field mesh it periodic (the inclusion stays "
+                           "whole), or move the box plane by a grid layer.")
             raise ValueError(errors)
         found = []
         for c, (win, W, own) in enumerate(zip(windows, fields, owns), start=1):
