@@ -709,11 +709,16 @@ def gradient_scale(values: np.ndarray, mask: np.ndarray, spacing) -> float:
     return float(np.median(g)) if g.size else 1.0
 
 
+def _unresolved(count: int, thickness: float) -> bool:
+    """An inclusion of `count` negative samples and `thickness` grid steps is too small for its grid."""
+    return count < _MIN_SAMPLES or thickness < _MIN_THICKNESS
+
+
 def size_errors(stats, descriptions) -> str:
     """Message listing inclusions not resolved by the grid ((count, thickness) per inclusion), or ''."""
     bad = []
     for i, ((count, thick), desc) in enumerate(zip(stats, descriptions), start=1):
-        if count < _MIN_SAMPLES or thick < _MIN_THICKNESS:
+        if _unresolved(count, thick):
             extra = f" (label {desc['label']})" if "label" in desc else ""
             bad.append(f"inclusion {i}{extra}: {count} negative samples, {thick:.2f} steps thick")
     if not bad:
@@ -729,8 +734,7 @@ def box_cut_small(stats, labels: np.ndarray) -> list[int]:
     border = set()
     for k in range(labels.ndim):
         border |= set(np.unique(np.take(labels, [0, -1], axis=k)).tolist())
-    return [i for i, (count, thick) in enumerate(stats, start=1)
-            if (count < _MIN_SAMPLES or thick < _MIN_THICKNESS) and i in border]
+    return [i for i, (count, thick) in enumerate(stats, start=1) if _unresolved(count, thick) and i in border]
 
 
 def neck_errors(found, where: str) -> str:
