@@ -308,6 +308,8 @@ def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
         t = stage("tetwild", t, f"{mesh.n_points} points, {mesh.n_cells} tetrahedra (not conforming, not periodic)")
     else:
         mesh, t = _mesh_3d(ms, config, stage, t)
+    if config.backend == "conforming":
+        _refuse_flat_cells(mesh, "mesh2d" if ms.dim == 2 else "volume")
 
     if config.validate:
         from ._validate import validate
@@ -322,6 +324,35 @@ def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
     if roll:
         mesh.metadata["roll"] = roll
     return mesh
+
+
+def _refuse_flat_cells(mesh, stage: str) -> None:
+    """MeshingError when a cell is still flat after the quality stages (|V| <= FLAT_REL_VOLUME l_max^d).
+
+    Seen where an interface touches a box plane (the field is zero there, e.g. a sphere tangent to it
+    at a grid node): the matrix between them thins to nothing, so the cells of that wedge stay flat
+    however the nodes move. Moving the box planes removes the contact, hence frame_dependent.
+    """
+    from ._quality import FLAT_REL_VOLUME, relative_volumes, worst_cell
+
+    rel = relative_volumes(mesh.points, mesh.cells)
+    flat = rel <= FLAT_REL_VOLUME
+    if not flat.any():
+        return
+    cell = worst_cell(mesh.points, mesh.cells, rel, mesh.inclusion_id, mesh.box)
+    plane = cell["nearest_box_plane"]
+    on_plane = plane["distance"] == 0.0 and cell["on_interface"]
+    cause = (f"an interface touches the box plane {'xyz'[plane['axis']]} = {plane['at']:g} there: the domain between "
+             "them thins to nothing, thinner than any element; hint: move the box planes off the inclusions' "
+             "extremes (a periodic grid file: roll='auto' / --roll auto; a grid in memory: np.roll it; a plain box: "
+             "move the plane by a grid layer)" if on_plane else
+             "the domain there is thinner than any element (interfaces meet at a point?); hint: sample the field "
+             "finer or move the interfaces apart")
+    name = "tet" if mesh.dim == 3 else "triangle"
+    count = f"{int(flat.sum())} {name}s stay" if flat.sum() > 1 else f"a {name} stays"
+    raise MeshingError(stage, f"{count} flat after the quality stages (|V| <= {FLAT_REL_VOLUME:g} l_max^{mesh.dim}, "
+                       f"the flattest {cell['q']:.2g}) near x = {tuple(round(v, 4) for v in cell['centroid'])}: "
+                       f"{cause}", frame_dependent=on_plane)
 
 
 def inclusion_table(ms, mesh) -> list[dict]:

@@ -79,6 +79,25 @@ def signed_volumes(points, cells) -> np.ndarray:
     return np.einsum("ij,ij->i", e[:, 0], cross3(e[:, 1], e[:, 2])) / 6.0
 
 
+# A cell is flat when |V| <= FLAT_REL_VOLUME * l_max^d, l_max its longest edge: the regular
+# tetrahedron has 0.118, a sliver at this bound dihedral angles near 1e-3 deg, which no FE code can use.
+FLAT_REL_VOLUME = 1e-6
+
+
+def longest_edges(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """(m,) length of each cell's longest edge."""
+    p = points[cells]
+    i, j = np.triu_indices(cells.shape[1], 1)
+    return np.linalg.norm(p[:, i] - p[:, j], axis=-1).max(axis=1)
+
+
+def relative_volumes(points, cells) -> np.ndarray:
+    """(m,) signed V / l_max^d: scale-free, compared with FLAT_REL_VOLUME to call a cell flat."""
+    points, cells = _check_simplices(points, cells)
+    lmax = longest_edges(points, cells)
+    return signed_volumes(points, cells) / np.maximum(lmax, np.finfo(float).tiny) ** points.shape[1]
+
+
 def cell_quality(points, cells) -> np.ndarray:
     """Radius-ratio quality: q = d * r_in / r_circ, 1 for regular cells, 0 for flat ones.
 

@@ -15,7 +15,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ._errors import MeshingError
 from ._mesh import AXES, LOCAL_FACETS, classify_facets, facet_table, match_periodic_nodes
-from ._quality import signed_volumes
+from ._quality import FLAT_REL_VOLUME, longest_edges, signed_volumes
 
 CHECKS = ("orientation", "volume", "manifold", "boundary", "periodic", "interface", "labels", "connectivity")
 
@@ -112,10 +112,8 @@ def _keys(rows: np.ndarray, n: int) -> np.ndarray:
 
 def _orientation(points, cells, flat_eps):
     vol = signed_volumes(points, cells)
-    p = points[cells]
+    lmax = longest_edges(points, cells)
     d = points.shape[1]
-    i, j = np.triu_indices(d + 1, 1)
-    lmax = np.linalg.norm(p[:, i] - p[:, j], axis=-1).max(axis=1)
     rel = vol / np.maximum(lmax, np.finfo(float).tiny) ** d
     inverted = int(np.sum(rel < -flat_eps))
     flat = int(np.sum(np.abs(rel) <= flat_eps))
@@ -264,7 +262,7 @@ def _connectivity(ids, ttable, ms, at_boundary=None):
 
 
 def validate(mesh, microstructure=None, *, interface_tol=None, volume_rtol: float = 1e-9,
-             periodic_tol: float = 1e-9, flat_eps: float = 1e-10) -> ValidationReport:
+             periodic_tol: float = 1e-9, flat_eps: float = FLAT_REL_VOLUME) -> ValidationReport:
     """Check a mesh for the invariants of a periodic conforming RVE mesh.
 
     Args:

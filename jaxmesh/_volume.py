@@ -21,7 +21,7 @@ from scipy.spatial import Delaunay, cKDTree
 
 from ._errors import MeshingError
 from ._mesh import Mesh, classify_facets, facet_table
-from ._quality import cross3, signed_volumes
+from ._quality import cross3, longest_edges, signed_volumes
 from ._face_flips import delaunay_box_faces, delaunay_interfaces
 from ._surface_mesh import OUTSIDE, SurfaceMesh
 from ._volume_recover import (
@@ -186,9 +186,7 @@ def _positive_drop_flat(points, cells, box, flat_eps: float, coplanar: int) -> t
     neg = vol < 0
     cells[neg, :2] = cells[neg, 1::-1]
     p = points[cells]
-    lmax = np.max([np.linalg.norm(p[:, i] - p[:, j], axis=1) for i, j in
-                   ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))], axis=0)
-    flat = np.abs(vol) <= flat_eps * lmax**3
+    flat = np.abs(vol) <= flat_eps * longest_edges(points, cells) ** 3
     on_plane = np.zeros(len(cells), bool)
     for a in range(3):
         for s in (0.0, 1.0):
@@ -484,7 +482,7 @@ def check_labels(mesh: Mesh, surface: SurfaceMesh, label_fn: Callable, phi_fn: C
     lab = np.asarray(label_fn(cen)).reshape(-1).astype(np.int64)
     bad = lab != mesh.inclusion_id[deep]
     if phi_fn is not None and bad.any():
-        lmax = np.max([np.linalg.norm(p[:, i] - p[:, j], axis=1) for i in range(4) for j in range(i)], axis=0)
+        lmax = longest_edges(mesh.points, mesh.cells[deep])
         bad &= np.abs(np.asarray(phi_fn(cen), dtype=float).reshape(-1)) > 0.5 * lmax
     if bad.any():
         i = int(np.flatnonzero(bad)[0])

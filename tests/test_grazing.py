@@ -185,3 +185,28 @@ def test_a_failure_that_rolling_cannot_help_is_raised_as_it_is(tmp_path, monkeyp
     with pytest.raises(MeshingError, match=r"\(roll None\)$"):  # a Microstructure has no file to roll
         spec = InclusionSpec("sphere", np.array([0.2, 0.5, 0.5]), np.full(3, 0.2), np.eye(3))
         mesh_rve(microstructure_from_specs([spec], (1.0, 1.0, 1.0), (24,) * 3), MeshConfig(h=0.08))
+
+
+def test_a_sphere_touching_a_box_plane_is_meshed_again_rolled(tmp_path):
+    """A sphere tangent to z = 0 at a grid node (phi exactly 0 there): in the file's frame the matrix
+    between sphere and plane thins to nothing and a tet there stays flat (|V| <= 1e-6 l_max^3), so the
+    volume stage stops with a frame-dependent error and the file is meshed again rolled; a grid in
+    memory gets the error with the remedy."""
+    from jaxmesh import Microstructure, MeshingError, quality_report
+
+    n, radius = 16, 0.25
+    x = np.arange(n) / n
+    d = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1) - np.array([0.5, 0.5, radius])
+    d -= np.round(d)
+    phi = np.linalg.norm(d, axis=-1) - radius
+    assert phi[n // 2, n // 2, 0] == 0.0
+    with pytest.raises(MeshingError, match="stays flat .* touches the box plane z = 0 .* np.roll") as failure:
+        mesh_rve(Microstructure.from_levelset(phi, periodic=True), MeshConfig(seed=0))
+    assert failure.value.stage == "volume" and failure.value.frame_dependent
+    np.save(tmp_path / "tangent.npy", phi)
+    with pytest.warns(UserWarning, match="rolled frame"):
+        mesh = mesh_rve(tmp_path / "tangent.npy", MeshConfig(seed=0))
+    roll = mesh.metadata["roll"]
+    assert roll["samples"][2] != 0 and "touches the box plane z = 0" in roll["after_failure"]
+    assert mesh.metadata["validation"]["ok"], mesh.metadata["validation"]
+    assert quality_report(mesh)["min_dihedral_deg"] >= 10.0

@@ -112,6 +112,18 @@ def test_flipped_cell_caught_by_orientation_only(dim):
     assert rep.checks["orientation"].counts["worst_cell"] == 5
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_cells_of_a_slab_thinner_than_a_millionth_of_their_edges_are_flat(dim):
+    """|V| <= 1e-6 l_max^d is flat (a sliver there has dihedral angles near 1e-3 deg): a slab 1e-8
+    thick fails the orientation check in every cell and nothing else; one 1e-3 thick passes."""
+    slab = structured_mesh((2,) * dim, box=(1.0,) * (dim - 1) + (1e-8,))
+    thin = validate(slab)
+    assert _failed(thin) == {"orientation"}
+    counts = thin.checks["orientation"].counts
+    assert counts["inverted"] == 0 and counts["flat"] == slab.n_cells
+    assert validate(structured_mesh((2,) * dim, box=(1.0,) * (dim - 1) + (1e-3,))).ok
+
+
 def test_tangled_mesh_caught_by_orientation_and_volume():
     m, ms = _labelled(2)
     pts = m.points.copy()
