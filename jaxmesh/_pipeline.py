@@ -335,18 +335,18 @@ def _refuse_flat_cells(mesh, stage: str) -> None:
     """
     from ._quality import FLAT_REL_VOLUME, relative_volumes, worst_cell
 
-    rel = relative_volumes(mesh.points, mesh.cells)
-    flat = rel <= FLAT_REL_VOLUME
+    size = np.abs(relative_volumes(mesh.points, mesh.cells))  # an inverted cell is the validator's to report
+    flat = size <= FLAT_REL_VOLUME
     if not flat.any():
         return
-    cell = worst_cell(mesh.points, mesh.cells, rel, mesh.inclusion_id, mesh.box)
+    cell = worst_cell(mesh.points, mesh.cells, size, mesh.inclusion_id, mesh.box)
     plane = cell["nearest_box_plane"]
     on_plane = plane["distance"] == 0.0 and cell["on_interface"]
     cause = (f"an interface touches the box plane {'xyz'[plane['axis']]} = {plane['at']:g} there: the domain between "
              "them thins to nothing, thinner than any element; hint: move the box planes off the inclusions' "
              "extremes (a periodic grid file: roll='auto' / --roll auto; a grid in memory: np.roll it; a plain box: "
              "move the plane by a grid layer)" if on_plane else
-             "the domain there is thinner than any element (interfaces meet at a point?); hint: sample the field "
+             "the domain there is thinner than any element (interfaces nearly meet there); hint: sample the field "
              "finer or move the interfaces apart")
     name = "tet" if mesh.dim == 3 else "triangle"
     count = f"{int(flat.sum())} {name}s stay" if flat.sum() > 1 else f"a {name} stays"
