@@ -477,13 +477,13 @@ def check_labels(mesh: Mesh, surface: SurfaceMesh, label_fn: Callable, phi_fn: C
     deep = np.all(mesh.cells >= surface.n_points, axis=1)
     if not deep.any():
         return 0
-    p = mesh.points[mesh.cells[deep]]
-    cen = p.mean(axis=1)
+    cen = mesh.points[mesh.cells[deep]].mean(axis=1)
     lab = np.asarray(label_fn(cen)).reshape(-1).astype(np.int64)
     bad = lab != mesh.inclusion_id[deep]
     if phi_fn is not None and bad.any():
-        lmax = longest_edges(mesh.points, mesh.cells[deep])
-        bad &= np.abs(np.asarray(phi_fn(cen), dtype=float).reshape(-1)) > 0.5 * lmax
+        disagree = np.flatnonzero(bad)
+        lmax = longest_edges(mesh.points, mesh.cells[deep][disagree])
+        bad[disagree] = np.abs(np.asarray(phi_fn(cen[disagree]), dtype=float).reshape(-1)) > 0.5 * lmax
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
         raise MeshingError("volume", f"labels: {int(bad.sum())} of {int(deep.sum())} deep cells disagree with the "
