@@ -84,17 +84,16 @@ def signed_volumes(points, cells) -> np.ndarray:
 FLAT_REL_VOLUME = 1e-6
 
 
-def longest_edges(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """(m,) length of each cell's longest edge."""
-    p = points[cells]
-    i, j = np.triu_indices(cells.shape[1], 1)
-    return np.linalg.norm(p[:, i] - p[:, j], axis=-1).max(axis=1)
+def longest_edges(corners: np.ndarray) -> np.ndarray:
+    """(m,) length of each cell's longest edge, from its corners (m, k, d) = points[cells]."""
+    i, j = np.triu_indices(corners.shape[1], 1)
+    return np.linalg.norm(corners[:, i] - corners[:, j], axis=-1).max(axis=1)
 
 
 def relative_volumes(points, cells) -> np.ndarray:
     """(m,) signed V / l_max^d: scale-free, compared with FLAT_REL_VOLUME to call a cell flat."""
     points, cells = _check_simplices(points, cells)
-    lmax = longest_edges(points, cells)
+    lmax = longest_edges(points[cells])
     return signed_volumes(points, cells) / np.maximum(lmax, np.finfo(float).tiny) ** points.shape[1]
 
 

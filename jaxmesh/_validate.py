@@ -112,7 +112,7 @@ def _keys(rows: np.ndarray, n: int) -> np.ndarray:
 
 def _orientation(points, cells, flat_eps):
     vol = signed_volumes(points, cells)
-    lmax = longest_edges(points, cells)
+    lmax = longest_edges(points[cells])
     d = points.shape[1]
     rel = vol / np.maximum(lmax, np.finfo(float).tiny) ** d
     inverted = int(np.sum(rel < -flat_eps))

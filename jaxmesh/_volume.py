@@ -186,7 +186,7 @@ def _positive_drop_flat(points, cells, box, flat_eps: float, coplanar: int) -> t
     neg = vol < 0
     cells[neg, :2] = cells[neg, 1::-1]
     p = points[cells]
-    flat = np.abs(vol) <= flat_eps * longest_edges(points, cells) ** 3
+    flat = np.abs(vol) <= flat_eps * longest_edges(p) ** 3
     on_plane = np.zeros(len(cells), bool)
     for a in range(3):
         for s in (0.0, 1.0):
@@ -482,7 +482,7 @@ def check_labels(mesh: Mesh, surface: SurfaceMesh, label_fn: Callable, phi_fn: C
     bad = lab != mesh.inclusion_id[deep]
     if phi_fn is not None and bad.any():
         disagree = np.flatnonzero(bad)
-        lmax = longest_edges(mesh.points, mesh.cells[deep][disagree])
+        lmax = longest_edges(mesh.points[mesh.cells[deep][disagree]])
         bad[disagree] = np.abs(np.asarray(phi_fn(cen[disagree]), dtype=float).reshape(-1)) > 0.5 * lmax
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
