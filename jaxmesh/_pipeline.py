@@ -327,19 +327,23 @@ def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
 
 
 def _refuse_flat_cells(mesh, stage: str) -> None:
-    """MeshingError when a cell is still flat after the quality stages (|V| <= FLAT_REL_VOLUME l_max^d).
+    """MeshingError when a cell is still flat after the quality stages (`_quality.flat_cells`: |V| <=
+    FLAT_REL_VOLUME l_max^d, or an angle below FLAT_ANGLE_DEG).
 
     Seen where an interface touches a box plane (the field is zero there, e.g. a sphere tangent to it
-    at a grid node): the matrix between them thins to nothing, so the cells of that wedge stay flat
+    at a grid node): the matrix between them thins to nothing, so the cells of that cusp stay flat
     however the nodes move. Moving the box planes removes the contact, hence frame_dependent.
     """
-    from ._quality import FLAT_REL_VOLUME, relative_volumes, worst_cell
+    from ._quality import FLAT_ANGLE_DEG, FLAT_REL_VOLUME, flat_cells, worst_cell
 
-    size = np.abs(relative_volumes(mesh.points, mesh.cells))  # an inverted cell is the validator's to report
-    flat = size <= FLAT_REL_VOLUME
+    flat, rel, angles = flat_cells(mesh.points, mesh.cells)
+    flat &= rel > 0  # an inverted cell is the validator's to report
     if not flat.any():
         return
-    cell = worst_cell(mesh.points, mesh.cells, size, mesh.inclusion_id, mesh.box)
+    # the flattest: the smaller of the two ratios to their bounds
+    flatness = np.where(flat, np.minimum(np.abs(rel) / FLAT_REL_VOLUME, angles / FLAT_ANGLE_DEG), np.inf)
+    cell = worst_cell(mesh.points, mesh.cells, flatness, mesh.inclusion_id, mesh.box)
+    k = cell["index"]
     plane = cell["nearest_box_plane"]
     on_plane = plane["distance"] == 0.0 and cell["on_interface"]
     cause = (f"an interface touches the box plane {'xyz'[plane['axis']]} = {plane['at']:g} there: the domain between "
@@ -350,8 +354,9 @@ def _refuse_flat_cells(mesh, stage: str) -> None:
              "finer or move the interfaces apart")
     name = "tet" if mesh.dim == 3 else "triangle"
     count = f"{int(flat.sum())} {name}s stay" if flat.sum() > 1 else f"a {name} stays"
-    raise MeshingError(stage, f"{count} flat after the quality stages (|V| <= {FLAT_REL_VOLUME:g} l_max^{mesh.dim}, "
-                       f"the flattest {cell['q']:.2g}) near x = {tuple(round(v, 4) for v in cell['centroid'])}: "
+    raise MeshingError(stage, f"{count} flat after the quality stages (|V| <= {FLAT_REL_VOLUME:g} l_max^{mesh.dim} "
+                       f"or an angle below {FLAT_ANGLE_DEG:g} deg; the flattest: V / l_max^{mesh.dim} = {rel[k]:.2g}, "
+                       f"angle {angles[k]:.2g} deg) near x = {tuple(round(v, 4) for v in cell['centroid'])}: "
                        f"{cause}", frame_dependent=on_plane)
 
 

@@ -79,9 +79,12 @@ def signed_volumes(points, cells) -> np.ndarray:
     return np.einsum("ij,ij->i", e[:, 0], cross3(e[:, 1], e[:, 2])) / 6.0
 
 
-# A cell is flat when |V| <= FLAT_REL_VOLUME * l_max^d, l_max its longest edge: the regular
-# tetrahedron has 0.118, a sliver at this bound dihedral angles near 1e-3 deg, which no FE code can use.
+# A cell is flat when |V| <= FLAT_REL_VOLUME * l_max^d, l_max its longest edge (the regular
+# tetrahedron has 0.118, a sliver at this bound dihedral angles near 1e-3 deg), or when its smallest
+# angle is below FLAT_ANGLE_DEG: a cap-shaped cell (an angle near 180 deg) has a volume ~ its small
+# angles, not their product, and a triangle of 0.002 deg passed the volume bound alone.
 FLAT_REL_VOLUME = 1e-6
+FLAT_ANGLE_DEG = 0.01
 
 
 def longest_edges(corners: np.ndarray) -> np.ndarray:
@@ -95,6 +98,14 @@ def relative_volumes(points, cells) -> np.ndarray:
     points, cells = _check_simplices(points, cells)
     lmax = longest_edges(points[cells])
     return signed_volumes(points, cells) / np.maximum(lmax, np.finfo(float).tiny) ** points.shape[1]
+
+
+def flat_cells(points, cells) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(m,) bool flat (see FLAT_REL_VOLUME, FLAT_ANGLE_DEG), (m,) signed V / l_max^d and (m,) smallest
+    angles in degrees (`smallest_angles`)."""
+    rel = relative_volumes(points, cells)
+    angles = smallest_angles(points, cells)
+    return (np.abs(rel) <= FLAT_REL_VOLUME) | (angles < FLAT_ANGLE_DEG), rel, angles
 
 
 def cell_quality(points, cells) -> np.ndarray:
@@ -188,6 +199,12 @@ def min_angles(points, tris) -> np.ndarray:
     p = points[tris]
     angles = [_angle(p[:, (i + 1) % 3] - p[:, i], p[:, (i + 2) % 3] - p[:, i]) for i in range(3)]
     return np.min(np.stack(angles, axis=-1), axis=-1)
+
+
+def smallest_angles(points, cells) -> np.ndarray:
+    """(m,) each cell's smallest angle in degrees: a triangle's interior angle, a tet's dihedral angle."""
+    points, cells = _check_simplices(points, cells)
+    return dihedral_angles(points, cells).min(axis=1) if cells.shape[1] == 4 else min_angles(points, cells)
 
 
 def quality_report(mesh, *, bins: int = 20, threshold: float = 0.3) -> dict:

@@ -15,7 +15,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ._errors import MeshingError
 from ._mesh import AXES, LOCAL_FACETS, classify_facets, facet_table, match_periodic_nodes
-from ._quality import FLAT_REL_VOLUME, longest_edges, signed_volumes
+from ._quality import FLAT_ANGLE_DEG, FLAT_REL_VOLUME, longest_edges, signed_volumes, smallest_angles
 
 CHECKS = ("orientation", "volume", "manifold", "boundary", "periodic", "interface", "labels", "connectivity")
 
@@ -110,20 +110,24 @@ def _keys(rows: np.ndarray, n: int) -> np.ndarray:
     return np.ascontiguousarray(rows).view(rec).ravel()
 
 
-def _orientation(points, cells, flat_eps):
+def _orientation(points, cells, flat_eps, flat_angle):
     vol = signed_volumes(points, cells)
     lmax = longest_edges(points[cells])
     d = points.shape[1]
     rel = vol / np.maximum(lmax, np.finfo(float).tiny) ** d
+    angles = smallest_angles(points, cells) if len(cells) else np.zeros(0)
     inverted = int(np.sum(rel < -flat_eps))
-    flat = int(np.sum(np.abs(rel) <= flat_eps))
+    flat = int(np.sum((np.abs(rel) <= flat_eps) | ((rel >= -flat_eps) & (angles < flat_angle))))
     worst = int(np.argmin(rel)) if len(rel) else -1
+    sharpest = int(np.argmin(angles)) if len(angles) else -1
     counts = {"inverted": inverted, "flat": flat, "worst_cell": worst,
-              "worst_rel_volume": float(rel[worst]) if worst >= 0 else 0.0}
+              "worst_rel_volume": float(rel[worst]) if worst >= 0 else 0.0,
+              "min_angle_deg": float(angles[sharpest]) if sharpest >= 0 else 0.0}
     ok = inverted == 0 and flat == 0
-    detail = (f"all {len(cells)} cells positive (min V/l_max^{d} = {counts['worst_rel_volume']:.3g})" if ok else
-              f"{inverted} inverted, {flat} flat cells; worst cell {worst} with V/l_max^{d} = "
-              f"{counts['worst_rel_volume']:.3g}")
+    smallest = f"smallest angle {counts['min_angle_deg']:.3g} deg in cell {sharpest}"
+    detail = (f"all {len(cells)} cells positive (min V/l_max^{d} = {counts['worst_rel_volume']:.3g}, {smallest})"
+              if ok else f"{inverted} inverted, {flat} flat cells; worst cell {worst} with V/l_max^{d} = "
+              f"{counts['worst_rel_volume']:.3g}; {smallest}")
     return Check("orientation", ok, detail, counts), vol, lmax
 
 
@@ -263,7 +267,8 @@ def _connectivity(ids, ttable, ms, at_boundary=None):
 
 
 def validate(mesh, microstructure=None, *, interface_tol=None, volume_rtol: float = 1e-9,
-             periodic_tol: float = 1e-9, flat_eps: float = FLAT_REL_VOLUME) -> ValidationReport:
+             periodic_tol: float = 1e-9, flat_eps: float = FLAT_REL_VOLUME,
+             flat_angle: float = FLAT_ANGLE_DEG) -> ValidationReport:
     """Check a mesh for the invariants of a periodic conforming RVE mesh.
 
     Args:
@@ -275,7 +280,8 @@ def validate(mesh, microstructure=None, *, interface_tol=None, volume_rtol: floa
         interface_tol: allowed |phi| at interface vertices (default 1e-6 * max(box)).
         volume_rtol: relative tolerance of sum |V| == box volume.
         periodic_tol: relative tolerance (times L) for face planes and periodic translation.
-        flat_eps: a cell is flat when |V| <= flat_eps * (its longest edge)^d.
+        flat_eps, flat_angle: a cell is flat when |V| <= flat_eps * (its longest edge)^d or its
+            smallest angle (dihedral angle of a tet) is below flat_angle degrees.
     Returns:
         ValidationReport with checks orientation, volume, manifold, boundary, periodic, interface,
         labels, connectivity.
@@ -289,7 +295,7 @@ def validate(mesh, microstructure=None, *, interface_tol=None, volume_rtol: floa
     n, d = points.shape
     checks: dict[str, Check] = {}
 
-    checks["orientation"], vol, lmax = _orientation(points, cells, flat_eps)
+    checks["orientation"], vol, lmax = _orientation(points, cells, flat_eps, flat_angle)
 
     total, box_vol = float(np.abs(vol).sum()), float(np.prod(box))
     rel = abs(total - box_vol) / box_vol

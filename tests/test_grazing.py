@@ -7,6 +7,8 @@ the plane, so the volume recovery projected split points out of the box (the 200
 inclusion 53, crossed y = 0 by 7e-5 with grid step 1/128); a one-node cap made recovery run away.
 """
 
+import re
+
 import numpy as np
 import pytest
 
@@ -189,9 +191,9 @@ def test_a_failure_that_rolling_cannot_help_is_raised_as_it_is(tmp_path, monkeyp
 
 def test_a_sphere_touching_a_box_plane_is_meshed_again_rolled(tmp_path):
     """A sphere tangent to z = 0 at a grid node (phi exactly 0 there): in the file's frame the matrix
-    between sphere and plane thins to nothing and a tet there stays flat (|V| <= 1e-6 l_max^3), so the
-    volume stage stops with a frame-dependent error and the file is meshed again rolled; a grid in
-    memory gets the error with the remedy."""
+    between sphere and plane thins to nothing and tets there stay flat (|V| <= 1e-6 l_max^3 or a
+    dihedral angle below 0.01 deg), so the volume stage stops with a frame-dependent error and the
+    file is meshed again rolled; a grid in memory gets the error with the remedy."""
     from jaxmesh import Microstructure, MeshingError, quality_report
 
     n, radius = 16, 0.25
@@ -200,7 +202,7 @@ def test_a_sphere_touching_a_box_plane_is_meshed_again_rolled(tmp_path):
     d -= np.round(d)
     phi = np.linalg.norm(d, axis=-1) - radius
     assert phi[n // 2, n // 2, 0] == 0.0
-    with pytest.raises(MeshingError, match="stays flat .* touches the box plane z = 0 .* np.roll") as failure:
+    with pytest.raises(MeshingError, match="stays? flat .* touches the box plane z = 0 .* np.roll") as failure:
         mesh_rve(Microstructure.from_levelset(phi, periodic=True), MeshConfig(seed=0))
     assert failure.value.stage == "volume" and failure.value.frame_dependent
     np.save(tmp_path / "tangent.npy", phi)
@@ -210,3 +212,29 @@ def test_a_sphere_touching_a_box_plane_is_meshed_again_rolled(tmp_path):
     assert roll["samples"][2] != 0 and "touches the box plane z = 0" in roll["after_failure"]
     assert mesh.metadata["validation"]["ok"], mesh.metadata["validation"]
     assert quality_report(mesh)["min_dihedral_deg"] >= 10.0
+
+
+def test_a_circle_touching_a_box_edge_is_meshed_again_rolled(tmp_path):
+    """The 2D case: a circle tangent to y = 0 at a grid node. The triangles in the cusp keep a fair
+    area ratio (V / l_max^2 above 1e-6, a cap's area goes with its small angles, not their product) but
+    angles near 1e-3 deg, so the angle bound (0.01 deg) is what refuses them; the file is meshed again
+    rolled with no angle below 20 deg."""
+    from jaxmesh import Microstructure, MeshingError, quality_report
+
+    n, radius = 64, 0.25
+    x = np.arange(n) / n
+    d = np.stack(np.meshgrid(x, x, indexing="ij"), axis=-1) - np.array([0.5, radius])
+    d -= np.round(d)
+    phi = np.linalg.norm(d, axis=-1) - radius
+    assert phi[n // 2, 0] == 0.0
+    with pytest.raises(MeshingError, match=r"stays? flat .*V / l_max\^2 = [0-9.e-]+, angle .* touches the box "
+                                           r"plane y = 0") as failure:
+        mesh_rve(Microstructure.from_levelset(phi, periodic=True), MeshConfig(seed=0))
+    assert failure.value.stage == "mesh2d" and failure.value.frame_dependent
+    assert float(re.search(r"V / l_max\^2 = ([0-9.e-]+)", str(failure.value)).group(1)) > 1e-6
+    np.save(tmp_path / "tangent2d.npy", phi)
+    with pytest.warns(UserWarning, match="rolled frame"):
+        mesh = mesh_rve(tmp_path / "tangent2d.npy", MeshConfig(seed=0))
+    assert mesh.metadata["roll"]["samples"][1] != 0
+    assert mesh.metadata["validation"]["ok"], mesh.metadata["validation"]
+    assert quality_report(mesh)["min_angle_deg"] >= 20.0

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from jaxmesh._mesh import structured_mesh
-from jaxmesh._quality import cell_quality, dihedral_angles, min_angles, quality_report, signed_volumes
+from jaxmesh._quality import (FLAT_ANGLE_DEG, FLAT_REL_VOLUME, cell_quality, dihedral_angles, flat_cells, min_angles,
+                              quality_report, signed_volumes)
 
 REGULAR_TET = np.array([[1.0, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]])
 CORNER_TET = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
@@ -82,6 +83,21 @@ def test_flat_and_sliver_cells():
     collinear = np.array([[0.0, 0], [1, 0], [2, 0]])
     assert cell_quality(collinear, ONE_TRI)[0] == 0.0
     assert min_angles(collinear, ONE_TRI)[0] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_flat_cells_by_volume_or_by_angle():
+    """A cap triangle 1e-5 high on a unit base has V / l_max^2 = 5e-6, above the volume bound, but
+    angles of 0.001 deg: flat by the angle bound. A needle tet (a 1e-4 base under a unit apex) has
+    fair dihedral angles but V / l_max^3 ~ 1e-9: flat by the volume bound. A regular cell is neither."""
+    cap = np.array([[0.0, 0], [1, 0], [0.5, 1e-5]])
+    flat, rel, angles = flat_cells(cap, ONE_TRI)
+    assert flat[0] and rel[0] == pytest.approx(5e-6) and angles[0] < FLAT_ANGLE_DEG and rel[0] > FLAT_REL_VOLUME
+    needle = np.array([[0.0, 0, 0], [1e-4, 0, 0], [0, 1e-4, 0], [0, 0, 1]])
+    flat, rel, angles = flat_cells(needle, ONE_TET)
+    assert flat[0] and rel[0] < FLAT_REL_VOLUME and angles[0] > 1.0
+    regular = np.array([[0.0, 0], [1, 0], [0.5, 0.5 * np.sqrt(3)]])
+    flat, rel, angles = flat_cells(regular, ONE_TRI)
+    assert not flat[0] and angles[0] == pytest.approx(60.0)
 
 
 def test_signed_volumes_sign_and_value():
