@@ -51,12 +51,13 @@ class MeshConfig:
         max_elements: refuse (ValueError, before the surfaces) a 3D conforming mesh whose size function
             predicts more tetrahedra than this; None: no limit. The estimate is
             _TETS_PER_PREDICTED * c * integral of h^-3 (`cellwise_element_count`).
-        roll: None (the box as given; when that fails with a MeshingError, a periodic file input is
-            meshed once more with "auto" and metadata['roll']['after_failure'] keeps the first error),
-            "auto" or d integers (zeros: as given, no second try): mesh a periodic file input rolled so
-            that grid sample roll[a] lies at x_a = 0. "auto" takes, per axis, the grid plane farthest
-            from every inclusion's extent bounds (`jaxmesh.clearest_roll`): box faces that graze an
-            inclusion leave wedges thinner than the elements. The mesh is in the rolled frame;
+        roll: None (the box as given; when that fails with a MeshingError, a periodic file input or
+            grid-built Microstructure (`Microstructure.can_roll`) is meshed once more with "auto" and
+            metadata['roll']['after_failure'] keeps the first error), "auto" or d integers (zeros: as
+            given, no second try): mesh a periodic grid rolled so that sample roll[a] lies at x_a = 0.
+            "auto" takes, per axis, the grid plane farthest from every inclusion's extent bounds
+            (`jaxmesh.clearest_roll`): box faces that graze an inclusion leave wedges thinner than the
+            elements. The mesh is in the rolled frame;
             metadata['roll'] gives the samples and the offset (mesh x = file x - offset, mod L).
         backend: 3D volume mesher. "conforming" (default): keeps every surface triangle, periodic or not.
             "tetwild": fTetWild (pytetwild) on the marching-cubes surface of the grid at edge length
@@ -133,33 +134,36 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redis
     from .io._read import load_input
 
     if isinstance(source, Microstructure):
-        if roll is not None:
-            raise ValueError("MeshConfig.roll needs an input file (the grid is rolled as it is read); hint: pass "
-                             "the path, or build the Microstructure from np.roll(phi, ...)")
+        if roll is not None and not source.can_roll:
+            raise ValueError("MeshConfig.roll needs an input file or a periodic Microstructure built from a grid "
+                             "(from_levelset, from_labels); hint: pass the path, or shift the analytic inclusions")
         if redistance:
             raise ValueError("MeshConfig.redistance needs an input file (the field is redistanced as it is read); "
                              "hint: Microstructure.from_levelset(phi, redistance=True)")
-        return source, {}
-    if isinstance(source, (str, Path)):
+        ms, reread = source, source.rolled
+    elif isinstance(source, (str, Path)):
         ms = load_input(source, box=box, periodic=periodic, redistance=redistance)
-        if roll is None:
-            return ms, {}
-        clear, best = box_plane_clearances(ms)
-        samples = best if roll == "auto" else tuple(roll)
-        if len(samples) != ms.dim:
-            raise ValueError(f"MeshConfig.roll: expected {ms.dim} integers for this {ms.dim}D input, got {samples}")
-        samples = tuple(k % n for k, n in zip(samples, ms.grid_shape))
-        step = np.asarray(ms.box, float) / np.asarray(ms.grid_shape)
-        info = {"samples": [int(k) for k in samples], "offset": [float(k * s) for k, s in zip(samples, step)],
-                "clearance_before": float(min(c[0] for c in clear)),
-                "clearance_after": float(min(c[k] for c, k in zip(clear, samples)))}
-        if any(samples):
-            ms = load_input(source, box=box, periodic=periodic, roll=samples, redistance=redistance)
-        return ms, info
-    raise ValueError(
-        f"expected a Microstructure or an input path (.npy/.npz/.tif), got {type(source).__name__}; "
-        "hint: jaxmesh.load_input(path) or Microstructure.from_levelset(phi)"
-    )
+        reread = lambda samples: load_input(source, box=box, periodic=periodic, roll=samples,  # noqa: E731
+                                            redistance=redistance)
+    else:
+        raise ValueError(
+            f"expected a Microstructure or an input path (.npy/.npz/.tif), got {type(source).__name__}; "
+            "hint: jaxmesh.load_input(path) or Microstructure.from_levelset(phi)"
+        )
+    if roll is None:
+        return ms, {}
+    clear, best = box_plane_clearances(ms)
+    samples = best if roll == "auto" else tuple(roll)
+    if len(samples) != ms.dim:
+        raise ValueError(f"MeshConfig.roll: expected {ms.dim} integers for this {ms.dim}D input, got {samples}")
+    samples = tuple(k % n for k, n in zip(samples, ms.grid_shape))
+    step = np.asarray(ms.box, float) / np.asarray(ms.grid_shape)
+    info = {"samples": [int(k) for k in samples], "offset": [float(k * s) for k, s in zip(samples, step)],
+            "clearance_before": float(min(c[0] for c in clear)),
+            "clearance_after": float(min(c[k] for c, k in zip(clear, samples)))}
+    if any(samples):
+        ms = reread(samples)
+    return ms, info
 
 
 def box_plane_clearances(ms) -> tuple[list[np.ndarray], tuple[int, ...]]:
@@ -205,7 +209,7 @@ def _grazing_hint(ms) -> str:
     if clear >= min(ms.spacing) / 6:
         return ""
     return (f"; note: a box plane passes {clear:.2g} from an inclusion's extreme, under a sixth of a grid step: "
-            "expect flat tets there (roll='auto' / --roll auto on a file input moves the box planes)")
+            "expect flat tets there (roll='auto' / --roll auto on a periodic grid moves the box planes)")
 
 
 def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Callable[[str], None] | None = None):
@@ -251,14 +255,22 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
 
 def _retry_config(source, config: MeshConfig, box) -> MeshConfig | None:
     """The configuration of a second try after a MeshingError: roll='auto' when the input is a periodic
-    file meshed in its own frame (roll None; an explicit roll, zeros included, is kept) and rolling
-    moves its box planes farther from the inclusions' extremes; else None."""
-    if config.roll is not None or not config.periodic or config.backend != "conforming" \
-            or not isinstance(source, (str, Path)):
-        return None
+    file, or a periodic Microstructure built from a grid, meshed in its own frame (roll None; an
+    explicit roll, zeros included, is kept) and rolling moves its box planes farther from the
+    inclusions' extremes; else None."""
+    from .geometry._microstructure import Microstructure
     from .io._read import load_input
 
-    ms = load_input(source, box=box, periodic=True, redistance=config.redistance)
+    if config.roll is not None or not config.periodic or config.backend != "conforming":
+        return None
+    if isinstance(source, Microstructure):
+        if not source.can_roll:
+            return None
+        ms = source
+    elif isinstance(source, (str, Path)):
+        ms = load_input(source, box=box, periodic=True, redistance=config.redistance)
+    else:
+        return None
     clear, best = box_plane_clearances(ms)
     if min(c[k] for c, k in zip(clear, best)) <= min(c[0] for c in clear):
         return None
@@ -348,8 +360,7 @@ def _refuse_flat_cells(mesh, stage: str) -> None:
     on_plane = plane["distance"] == 0.0 and cell["on_interface"]
     cause = (f"an interface touches the box plane {'xyz'[plane['axis']]} = {plane['at']:g} there: the domain between "
              "them thins to nothing, thinner than any element; hint: move the box planes off the inclusions' "
-             "extremes (a periodic grid file: roll='auto' / --roll auto; a grid in memory: np.roll it; a plain box: "
-             "move the plane by a grid layer)" if on_plane else
+             "extremes (a periodic grid: roll='auto' / --roll auto; a plain box: move the plane by a grid layer)" if on_plane else
              "the domain there is thinner than any element (interfaces nearly meet there); hint: sample the field "
              "finer or move the interfaces apart")
     name = "tet" if mesh.dim == 3 else "triangle"

@@ -122,8 +122,9 @@ def _grazing_sphere_file(path, n=24, radius=0.2):
 
 def test_a_failure_in_the_files_frame_is_meshed_again_rolled(tmp_path, monkeypatch):
     """roll None: a MeshingError in the file's own frame gets one more try with roll 'auto' (a valid
-    mesh whose metadata keeps the first error); an explicit roll, zeros included, gets none."""
-    from jaxmesh import MeshingError, _pipeline
+    mesh whose metadata keeps the first error); an explicit roll, zeros included, gets none. The same
+    grid given in memory (`Microstructure.from_levelset`) is rolled the same way."""
+    from jaxmesh import Microstructure, MeshingError, _pipeline
 
     path = _grazing_sphere_file(tmp_path / "graze.npy")
     real = _pipeline._mesh_3d
@@ -148,6 +149,10 @@ def test_a_failure_in_the_files_frame_is_meshed_again_rolled(tmp_path, monkeypat
         mesh_rve(path, MeshConfig(h=0.08, roll=(0, 0, 0)))
     with pytest.warns(UserWarning, match="rolled frame"):  # no progress callback: a warning says it
         mesh_rve(path, MeshConfig(h=0.08, seed=0, validate=False))
+    calls.clear()
+    in_memory = mesh_rve(Microstructure.from_levelset(np.load(path)), MeshConfig(h=0.08, seed=0), progress=lines.append)
+    assert calls == [None, "auto"] and in_memory.metadata["roll"]["samples"] == roll["samples"]
+    assert in_memory.metadata["validation"]["ok"] and len(in_memory.cells) == len(mesh.cells)
 
 
 def test_a_failure_no_frame_can_remove_is_not_meshed_again(tmp_path, monkeypatch):
@@ -184,7 +189,7 @@ def test_a_failure_that_rolling_cannot_help_is_raised_as_it_is(tmp_path, monkeyp
     np.save(tmp_path / "clear.npy", np.linalg.norm(X - 0.5, axis=-1) - 0.2)  # box planes already clearest
     with pytest.raises(MeshingError, match=r"^stage 'volume': recovery stopped \(roll None\)$"):
         mesh_rve(tmp_path / "clear.npy", MeshConfig(h=0.08))
-    with pytest.raises(MeshingError, match=r"\(roll None\)$"):  # a Microstructure has no file to roll
+    with pytest.raises(MeshingError, match=r"\(roll None\)$"):  # analytic inclusions have no grid to roll
         spec = InclusionSpec("sphere", np.array([0.2, 0.5, 0.5]), np.full(3, 0.2), np.eye(3))
         mesh_rve(microstructure_from_specs([spec], (1.0, 1.0, 1.0), (24,) * 3), MeshConfig(h=0.08))
 
@@ -193,7 +198,7 @@ def test_a_sphere_touching_a_box_plane_is_meshed_again_rolled(tmp_path):
     """A sphere tangent to z = 0 at a grid node (phi exactly 0 there): in the file's frame the matrix
     between sphere and plane thins to nothing and tets there stay flat (|V| <= 1e-6 l_max^3 or a
     dihedral angle below 0.01 deg), so the volume stage stops with a frame-dependent error and the
-    file is meshed again rolled; a grid in memory gets the error with the remedy."""
+    file is meshed again rolled; with roll=(0, 0, 0) (the frame kept) the error says the remedy."""
     from jaxmesh import Microstructure, MeshingError, quality_report
 
     n, radius = 16, 0.25
@@ -202,8 +207,8 @@ def test_a_sphere_touching_a_box_plane_is_meshed_again_rolled(tmp_path):
     d -= np.round(d)
     phi = np.linalg.norm(d, axis=-1) - radius
     assert phi[n // 2, n // 2, 0] == 0.0
-    with pytest.raises(MeshingError, match="stays? flat .* touches the box plane z = 0 .* np.roll") as failure:
-        mesh_rve(Microstructure.from_levelset(phi, periodic=True), MeshConfig(seed=0))
+    with pytest.raises(MeshingError, match="stays? flat .* touches the box plane z = 0 .* roll='auto'") as failure:
+        mesh_rve(Microstructure.from_levelset(phi, periodic=True), MeshConfig(seed=0, roll=(0, 0, 0)))
     assert failure.value.stage == "volume" and failure.value.frame_dependent
     np.save(tmp_path / "tangent.npy", phi)
     with pytest.warns(UserWarning, match="rolled frame"):
@@ -229,7 +234,7 @@ def test_a_circle_touching_a_box_edge_is_meshed_again_rolled(tmp_path):
     assert phi[n // 2, 0] == 0.0
     with pytest.raises(MeshingError, match=r"stays? flat .*V / l_max\^2 = [0-9.e-]+, angle .* touches the box "
                                            r"plane y = 0") as failure:
-        mesh_rve(Microstructure.from_levelset(phi, periodic=True), MeshConfig(seed=0))
+        mesh_rve(Microstructure.from_levelset(phi, periodic=True), MeshConfig(seed=0, roll=(0, 0)))
     assert failure.value.stage == "mesh2d" and failure.value.frame_dependent
     assert float(re.search(r"V / l_max\^2 = ([0-9.e-]+)", str(failure.value)).group(1)) > 1e-6
     np.save(tmp_path / "tangent2d.npy", phi)

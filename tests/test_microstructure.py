@@ -628,3 +628,28 @@ def test_redistance_makes_a_field_a_distance_with_the_same_signs(periodic):
         from jaxmesh._pipeline import _as_microstructure
 
         _as_microstructure(ms, redistance=True)
+
+
+def test_rolled_rebuilds_a_grid_microstructure_in_the_shifted_frame():
+    """rolled(k): the grid read so that sample k lies at x = 0, so the field at x equals the original's at
+    x + k h (mod L), for level sets and labelled images; a plain box or analytic inclusions cannot roll."""
+    n = 24
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1)
+    d = X - np.array([0.1, 0.5, 0.6])
+    d -= np.round(d)
+    phi = np.linalg.norm(d, axis=-1) - 0.2
+    pts = np.random.default_rng(0).random((50, 3))
+    shift = np.array([6, 0, 3]) / n
+    for ms in (Microstructure.from_levelset(phi), Microstructure.from_labels((phi < 0).astype(np.int32))):
+        assert ms.can_roll
+        moved = ms.rolled((6, 0, 3))
+        assert moved.grid_shape == ms.grid_shape and len(moved.inclusions) == 1
+        np.testing.assert_allclose(moved.phi(pts), ms.phi(np.mod(pts + shift, 1.0)), atol=1e-9)
+        np.testing.assert_array_equal(moved.label(pts), ms.label(np.mod(pts + shift, 1.0)))
+    assert not Microstructure.from_levelset(phi[4:-4, 4:-4, 4:-4], periodic=False).can_roll
+    with pytest.raises(ValueError, match="rolled expected 3 integers"):
+        Microstructure.from_levelset(phi).rolled((1, 2))
+    analytic = Microstructure.from_functions([lambda p: jnp.linalg.norm(p - 0.5, axis=-1) - 0.2], (1.0,) * 3, (n,) * 3)
+    with pytest.raises(ValueError, match="needs a periodic microstructure built from a grid"):
+        analytic.rolled((1, 0, 0))

@@ -246,6 +246,29 @@ class Microstructure:
                 raise ValueError(f"Microstructure expected {name} of shape {self.grid_shape}, "
                                  f"got {np.shape(a)}.")
         self._stacked = None
+        self._rebuild = None  # grid-built and periodic: samples -> the Microstructure of the rolled grid
+
+    def rolled(self, samples) -> Microstructure:
+        """The same periodic microstructure built from its grid rolled so that sample samples[a] lies at
+        x_a = 0 (the box faces move to x_a = samples[a] L_a / n_a of this frame), as `load_input(...,
+        roll=samples)` reads a file. For microstructures built by from_levelset / from_labels.
+
+        Example:
+            >>> ms.rolled(jaxmesh.clearest_roll(lower, upper, ms.box, ms.grid_shape))
+        """
+        if self._rebuild is None:
+            raise ValueError("Microstructure.rolled needs a periodic microstructure built from a grid "
+                             "(from_levelset, from_labels); hint: build it from the rolled samples, or shift "
+                             "the analytic inclusions")
+        if len(samples) != self.dim or not all(isinstance(k, (int, np.integer)) for k in samples):
+            raise ValueError(f"Microstructure.rolled expected {self.dim} integers (grid samples per axis), "
+                             f"got {samples!r}")
+        return self._rebuild(tuple(int(k) % n for k, n in zip(samples, self.grid_shape)))
+
+    @property
+    def can_roll(self) -> bool:
+        """Whether `rolled` can rebuild this microstructure in another frame."""
+        return self._rebuild is not None
 
     def __repr__(self):
         return (f"Microstructure(dim={self.dim}, box={self.box}, periodic={self.periodic}, "
@@ -506,8 +529,13 @@ class Microstructure:
             windows.append(win)
         descriptions = [{"kind": "levelset", "scale": float(scale), **({"redistanced": True} if redistance else {})}
                         for _ in range(n)]
-        return cls._from_windows(box, periodic, order, labels, (starts, lengths), windows, fields, r,
-                                 descriptions, "from_levelset", check_gaps, check_necks)
+        ms = cls._from_windows(box, periodic, order, labels, (starts, lengths), windows, fields, r,
+                               descriptions, "from_levelset", check_gaps, check_necks)
+        if periodic:
+            ms._rebuild = functools.partial(_from_rolled_grid, functools.partial(
+                cls.from_levelset, box=box, periodic=True, order=order, reach=reach, check_gaps=check_gaps,
+                check_necks=check_necks, redistance=redistance), np.array(values, copy=True))
+        return ms
 
     @classmethod
     def from_labels(cls, labels, box=None, periodic=True, *, reach=None) -> Microstructure:
@@ -567,8 +595,12 @@ class Microstructure:
         if len(np.unique(values)) < len(values):
             for k, val in enumerate(values):
                 descriptions[k]["part"] = int((values[:k] == val).sum()) + 1
-        return cls._from_windows(box, periodic, "cubic", comps, (starts, lengths), windows, fields, r,
-                                 descriptions, "from_labels")
+        ms = cls._from_windows(box, periodic, "cubic", comps, (starts, lengths), windows, fields, r,
+                               descriptions, "from_labels")
+        if periodic:
+            ms._rebuild = functools.partial(_from_rolled_grid, functools.partial(
+                cls.from_labels, box=box, periodic=True, reach=reach), np.array(labels, copy=True))
+        return ms
 
     @classmethod
     def _from_windows(cls, box, periodic, order, labels, arcs, windows, fields, r, descriptions, where: str,
@@ -731,3 +763,8 @@ def _check_gaps(dn1, dn2, nearest, labels, spacing, n: int, periodic: bool):
     if missing:
         raise ValueError(f"from_functions expected every inclusion to own grid nodes, got {missing} hidden "
                          "inside others. Hint: remove nested or duplicated inclusions.")
+
+
+def _from_rolled_grid(build: Callable, grid: np.ndarray, samples: tuple[int, ...]) -> Microstructure:
+    """build(grid rolled so that sample samples[a] comes first along each axis a)."""
+    return build(np.roll(grid, [-k for k in samples], axis=tuple(range(grid.ndim))))
