@@ -194,6 +194,25 @@ def project(phi_fn, points: np.ndarray, locked: np.ndarray, n_iter: int = 8):
     return q[:k].copy(), np.array(phi)[:k], np.array(g)[:k]
 
 
+def refuse_nodes_off_the_level_set(points: np.ndarray, phi_fn, box, inclusion_id: int, rtol: float = 1e-6) -> None:
+    """MeshingError when a surface node stays off phi = 0 (|phi| > rtol max(L), the validator's interface
+    bound) after the last projections. Newton stalls at a ripple of an interpolated field finer than
+    the grid (a tip sharper than a grid step, where a field that is not a distance bends): a local
+    extremum of phi just inside the interface, where it cannot reach zero."""
+    _, phi, grad = project(phi_fn, points, np.ones(points.shape, bool), 0)
+    off = np.abs(phi) > rtol * float(np.max(box))
+    if not off.any():
+        return
+    k = int(np.argmax(np.abs(phi)))
+    where = tuple(round(float(v), 4) for v in np.mod(points[k], np.asarray(box, float)))
+    raise MeshingError("surfaces", f"{int(off.sum())} surface node(s) stay off the level set after projection "
+                       f"(|phi| up to {abs(phi[k]):.2g}, |grad phi| {np.linalg.norm(grad[k]):.2g} there) near x = "
+                       f"{where}: the interpolated field has a ripple there finer than the grid (e.g. a tip sharper "
+                       "than a grid step of a field that is not a distance), on which the projection stalls; hint: "
+                       "--redistance (MeshConfig(redistance=True)) makes the field a signed distance first, or "
+                       "sample the field finer", inclusion_id, frame_dependent=False)
+
+
 def level_set_gradient(phi_fn, points: np.ndarray) -> np.ndarray:
     """(m, 3) gradients of phi_fn at NumPy points."""
     return project(phi_fn, points, np.ones((len(points), 3), bool), 0)[2]
@@ -675,4 +694,5 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
         wp, wt, src = wrap_pieces(pts, tris, on_plane, box)
     else:
         wp, wt, src = inside_pieces(pts, tris, on_plane, box)
+    refuse_nodes_off_the_level_set(pts[np.unique(src)], phi_fn, box, inclusion.id)  # the nodes kept
     return {"points": wp, "triangles": wt, "source": src, "unwrapped_points": pts, "unwrapped_triangles": tris}
