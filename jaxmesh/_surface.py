@@ -194,13 +194,16 @@ def project(phi_fn, points: np.ndarray, locked: np.ndarray, n_iter: int = 8):
     return q[:k].copy(), np.array(phi)[:k], np.array(g)[:k]
 
 
-def refuse_nodes_off_the_level_set(points: np.ndarray, phi_fn, box, inclusion_id: int, rtol: float = 1e-6) -> None:
-    """MeshingError when a surface node stays off phi = 0 (|phi| > rtol max(L), the validator's interface
-    bound) after the last projections. Newton stalls at a ripple of an interpolated field finer than
-    the grid (a tip sharper than a grid step, where a field that is not a distance bends): a local
-    extremum of phi just inside the interface, where it cannot reach zero."""
+def refuse_nodes_off_the_level_set(points: np.ndarray, phi_fn, box, inclusion_id: int, step: float,
+                                   rtol: float = 1e-6) -> None:
+    """MeshingError when a surface node has stalled off phi = 0 after the last projections: |phi| above the
+    validator's interface bound (rtol max(L)) and its distance estimate |phi| / |grad phi| above a
+    hundredth of the marching-cubes step (a smaller residual is slow convergence, e.g. a trace node
+    moving in its box plane, which later projections finish). Newton stalls at a ripple of an
+    interpolated field finer than the grid (a tip sharper than a grid step of a field that is not a
+    distance): a local extremum of phi just inside the interface, where it cannot reach zero."""
     _, phi, grad = project(phi_fn, points, np.ones(points.shape, bool), 0)
-    off = np.abs(phi) > rtol * float(np.max(box))
+    off = (np.abs(phi) > rtol * float(np.max(box))) & (np.abs(phi) > 0.01 * step * np.linalg.norm(grad, axis=1))
     if not off.any():
         return
     k = int(np.argmax(np.abs(phi)))
@@ -694,5 +697,5 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
         wp, wt, src = wrap_pieces(pts, tris, on_plane, box)
     else:
         wp, wt, src = inside_pieces(pts, tris, on_plane, box)
-    refuse_nodes_off_the_level_set(pts[np.unique(src)], phi_fn, box, inclusion.id)  # the nodes kept
+    refuse_nodes_off_the_level_set(pts[np.unique(src)], phi_fn, box, inclusion.id, step)  # the nodes kept
     return {"points": wp, "triangles": wt, "source": src, "unwrapped_points": pts, "unwrapped_triangles": tris}
