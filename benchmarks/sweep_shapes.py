@@ -2,8 +2,9 @@
 
 Builds each input in OUT_DIR (tori, rounded cubes, finite cylinders, a labelled image, a
 non-cubic box, a sphere near its images, spheres on a box corner / edge, Gaussian excursion
-sets from `jaxmesh generate --kind grf`, and percolating inclusions: endless fibres, a gyroid
-network, percolating excursion sets), runs `jaxmesh mesh`
+sets from `jaxmesh generate --kind grf`, percolating inclusions: endless fibres, a gyroid
+network, percolating excursion sets; and fields written as users write them: random spheres
+placed with no box clearance, algebraic ellipsoid fields that are not distances), runs `jaxmesh mesh`
 on it and prints one line per case. With --no-periodic the same fields are meshed as plain boxes
 (`jaxmesh mesh --no-periodic`: the box cuts the inclusions, each piece one inclusion).
     .venv/bin/python benchmarks/sweep_shapes.py [OUT_DIR] [--only NAME ...] [--build-only] [--no-periodic]
@@ -189,6 +190,42 @@ def _excursion(seed, fraction="0.06", length="0.06", grid="64", name="grf", note
     return case
 
 
+def sd_algebraic_ellipsoid(p, axes):
+    """Zero on the ellipsoid, a distance only along its shortest axis: a field as users often write it."""
+    return min(axes) * (np.linalg.norm(p / np.asarray(axes), axis=-1) - 1.0)
+
+
+def _needle(redistance: bool):
+    def case(out: Path, n=32):
+        phi = sd_algebraic_ellipsoid(_local(_grid(n), (0.5, 0.5, 0.5)), (0.3, 0.05, 0.05))
+        np.save(p := out / "needle.npy", phi)
+        return p, ["--redistance"] if redistance else [], "algebraic ellipsoid 0.3 x 0.05 x 0.05, tips a quarter step"
+    return case
+
+
+def _numpy_spheres(seed: int, count: int, n: int):
+    """Random spheres placed here (not by `jaxmesh generate`): nothing keeps them off the box planes."""
+    def case(out: Path):
+        def make(rng):
+            r = rng.uniform(0.07, 0.14)
+            return (lambda p: sd_sphere(p, r)), r
+
+        shapes = _place(np.random.default_rng(seed), make, count, gap=0.05)
+        np.save(p := out / f"numpy_spheres_s{seed}.npy", _union(shapes, n))
+        return p, [], f"{count} spheres, {n}^3, {_crossing(shapes)} near faces"
+    return case
+
+
+def case_algebraic_ellipsoids(out: Path, n=48, seed=3, count=20):
+    def make(rng):
+        axes = rng.uniform(0.1, 0.16) * np.array([1.0, rng.uniform(0.5, 0.9), rng.uniform(0.5, 0.9)])
+        return (lambda p: sd_algebraic_ellipsoid(p, axes)), float(axes.max())
+
+    shapes = _place(np.random.default_rng(seed), make, count, gap=0.04)
+    np.save(p := out / "algebraic_ellipsoids.npy", _union(shapes, n))
+    return p, [], f"{count} algebraic ellipsoid fields (not distances), {_crossing(shapes)} near faces"
+
+
 def case_big_sphere(out: Path, n=48):
     np.save(p := out / "big_sphere.npy", sd_sphere(_local(_grid(n), (0.5, 0.5, 0.5)), 0.45))
     return p, [], "r 0.45 centred, gap 0.1 to images"
@@ -288,6 +325,11 @@ CASES = {
     "gyroid_03": _gyroid("gyroid_03", 0.3, 48),
     "grf_perc_s1": _excursion(1, "0.2", "0.15", "48", "grf_perc", "percolating blobs"),
     "grf_perc_s2": _excursion(2, "0.2", "0.15", "48", "grf_perc", "percolating blobs"),
+    "needle": _needle(redistance=False),
+    "needle_redistanced": _needle(redistance=True),
+    "numpy_spheres_s1": _numpy_spheres(1, 25, 40),
+    "numpy_spheres_s2": _numpy_spheres(2, 40, 48),
+    "algebraic_ellipsoids": case_algebraic_ellipsoids,
 }
 
 
