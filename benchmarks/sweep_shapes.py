@@ -334,8 +334,10 @@ CASES = {
 
 
 def _last_line(text: str) -> str:
-    lines = [ln for ln in text.strip().splitlines() if ln.strip()]
-    return lines[-1].strip() if lines else "(no stderr)"
+    """The last error line of stderr (a hint may follow it), else its last line."""
+    lines = [ln.strip() for ln in text.strip().splitlines() if ln.strip()]
+    errors = [ln for ln in lines if "error:" in ln]
+    return (errors or lines or ["(no stderr)"])[-1]
 
 
 def run_case(name: str, out: Path, build_only: bool, periodic: bool = True) -> str:
