@@ -254,7 +254,7 @@ class Microstructure:
         roll=samples)` reads a file. For microstructures built by from_levelset / from_labels.
 
         Example:
-            >>> ms.rolled(jaxmesh.clearest_roll(lower, upper, ms.box, ms.grid_shape))
+            >>> moved = ms.rolled((8, 0, 0))  # sample 8 along x now at x = 0; the grid is kept for this
         """
         if self._rebuild is None:
             raise ValueError("Microstructure.rolled needs a periodic microstructure built from a grid "
