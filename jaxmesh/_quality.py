@@ -100,12 +100,19 @@ def relative_volumes(points, cells) -> np.ndarray:
     return signed_volumes(points, cells) / np.maximum(lmax, np.finfo(float).tiny) ** points.shape[1]
 
 
+def flat_mask(rel: np.ndarray, angles: np.ndarray, rel_volume: float = FLAT_REL_VOLUME,
+              angle: float = FLAT_ANGLE_DEG) -> np.ndarray:
+    """(m,) bool: |V| <= rel_volume l_max^d (rel = V / l_max^d), or not inverted and its smallest angle
+    below `angle` degrees (an inverted cell's angles are those of its mirror image)."""
+    return (np.abs(rel) <= rel_volume) | ((rel >= -rel_volume) & (angles < angle))
+
+
 def flat_cells(points, cells) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(m,) bool flat (see FLAT_REL_VOLUME, FLAT_ANGLE_DEG), (m,) signed V / l_max^d and (m,) smallest
-    angles in degrees (`smallest_angles`)."""
+    """(m,) bool flat (`flat_mask`), (m,) signed V / l_max^d and (m,) smallest angles in degrees
+    (`smallest_angles`)."""
     rel = relative_volumes(points, cells)
     angles = smallest_angles(points, cells)
-    return (np.abs(rel) <= FLAT_REL_VOLUME) | (angles < FLAT_ANGLE_DEG), rel, angles
+    return flat_mask(rel, angles), rel, angles
 
 
 def cell_quality(points, cells) -> np.ndarray:

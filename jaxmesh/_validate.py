@@ -15,7 +15,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ._errors import MeshingError
 from ._mesh import AXES, LOCAL_FACETS, classify_facets, facet_table, match_periodic_nodes
-from ._quality import FLAT_ANGLE_DEG, FLAT_REL_VOLUME, longest_edges, signed_volumes, smallest_angles
+from ._quality import FLAT_ANGLE_DEG, FLAT_REL_VOLUME, flat_mask, longest_edges, signed_volumes, smallest_angles
 
 CHECKS = ("orientation", "volume", "manifold", "boundary", "periodic", "interface", "labels", "connectivity")
 
@@ -117,7 +117,7 @@ def _orientation(points, cells, flat_eps, flat_angle):
     rel = vol / np.maximum(lmax, np.finfo(float).tiny) ** d
     angles = smallest_angles(points, cells) if len(cells) else np.zeros(0)
     inverted = int(np.sum(rel < -flat_eps))
-    flat = int(np.sum((np.abs(rel) <= flat_eps) | ((rel >= -flat_eps) & (angles < flat_angle))))
+    flat = int(np.sum(flat_mask(rel, angles, flat_eps, flat_angle)))
     worst = int(np.argmin(rel)) if len(rel) else -1
     sharpest = int(np.argmin(angles)) if len(angles) else -1
     counts = {"inverted": inverted, "flat": flat, "worst_cell": worst,
