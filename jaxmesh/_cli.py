@@ -352,7 +352,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("-o", "--output", required=True, help="mesh file: .vtu .msh .xdmf .inp .vtk .npz")
     m.add_argument("--box", type=float, nargs="+", default=None)
     m.add_argument("--h", type=float, default=None, help="uniform element size (overrides the size function)")
-    m.add_argument("--iis", type=float, default=None, help="initial interface size")
+    m.add_argument("--iis", type=float, default=None,
+                   help="initial interface size, a length in the box's units (default: 0.05 times the box's "
+                        "mean side, the geometric mean of its sides)")
     m.add_argument("--nb-el", type=float, default=None,
                    help="elements across the narrowest gaps between inclusions "
                         "(min(nb_el, 1) across layers the box cuts off)")

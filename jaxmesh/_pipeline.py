@@ -30,13 +30,18 @@ _FIELD_HINTS = {
 }
 
 
+DEFAULT_IIS = 0.05  # of the box's mean side: the paper's coarse setting on a unit box
+
+
 @dataclasses.dataclass(frozen=True)
 class MeshConfig:
     """Parameters of :func:`mesh_rve`, validated on construction.
 
     Attributes:
-        iis: initial interface size (largest element size on the interfaces), in box units.
-            Default 0.05: the paper's coarse setting for a unit box.
+        iis: initial interface size (largest element size on the interfaces), a length in the box's
+            units. None (default): 0.05 times the box's mean side (the geometric mean, (L_1 ... L_d)^(1/d)),
+            the paper's coarse setting for a unit box, so the defaults mesh a box in mm as they mesh
+            the same box in m (curv_alpha, nb_el and grad are dimensionless).
         nb_el: elements across the narrowest gaps (h_nar = DN2 / nb_el); min(nb_el, 1) across a layer
             the box cuts off (a shallow cap, a trace beside a box edge).
         curv_alpha: curvature sensitivity (h_curv = curv_alpha / |kappa|).
@@ -68,7 +73,7 @@ class MeshConfig:
             distance, whose nearly flat zero sets (saddles close to the threshold) fold the surfaces.
     """
 
-    iis: float = 0.05
+    iis: float | None = None
     nb_el: float = 3.0
     curv_alpha: float = 0.5
     grad: float = 0.3
@@ -86,7 +91,7 @@ class MeshConfig:
     def __post_init__(self):
         for name in ("iis", "nb_el", "curv_alpha", "grad", "h_max", "h", "max_elements"):
             value = getattr(self, name)
-            if value is None and name in ("h_max", "h", "max_elements"):
+            if value is None and name in ("iis", "h_max", "h", "max_elements"):
                 continue
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or value <= 0:
                 raise ValueError(
@@ -103,14 +108,24 @@ class MeshConfig:
             raise ValueError("MeshConfig.roll needs periodic=True: the faces of a plain box are the domain's")
         if not isinstance(self.redistance, bool):
             raise ValueError(f"MeshConfig.redistance: expected True or False, got {self.redistance!r}")
-        if self.h_max is not None and self.h_max < self.iis:
-            raise ValueError(f"MeshConfig.h_max: expected >= iis = {self.iis}, got {self.h_max}")
+        if self.h_max is not None and self.iis is not None and self.h_max < self.iis:
+            raise ValueError(f"MeshConfig.h_max: expected >= iis = {self.iis:g}, got {self.h_max}")
+
+    def for_box(self, box) -> MeshConfig:
+        """This configuration with iis set: DEFAULT_IIS times the box's mean side when it is None."""
+        if self.iis is not None:
+            return self
+        iis = float(f"{DEFAULT_IIS * math.prod(box) ** (1.0 / len(box)):.12g}")  # 0.5, not 0.49999999999999994
+        if self.h_max is not None and self.h_max < iis:
+            raise ValueError(f"MeshConfig.h_max: expected >= iis = {iis:g} (the default, {DEFAULT_IIS} times the box's "
+                             f"mean side), got {self.h_max}; hint: pass iis too, or a larger h_max")
+        return dataclasses.replace(self, iis=iis)
 
     def size_kwargs(self) -> dict:
-        out = {"iis": self.iis, "nb_el": self.nb_el, "curv_alpha": self.curv_alpha, "grad": self.grad}
-        if self.h_max is not None:
-            out["h_max"] = self.h_max
-        return out
+        """The size-function parameters (SizeParams keywords); iis left out while it is None."""
+        out = {"iis": self.iis, "nb_el": self.nb_el, "curv_alpha": self.curv_alpha, "grad": self.grad,
+               "h_max": self.h_max}
+        return {key: value for key, value in out.items() if value is not None}
 
 
 def _check_sizes_against_box(config: MeshConfig, box) -> None:
@@ -291,6 +306,7 @@ def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
     t = time.perf_counter()
     ms, roll = _as_microstructure(source, box=box, periodic=config.periodic, roll=config.roll,
                                   redistance=config.redistance)
+    config = config.for_box(ms.box)
     if config.backend == "conforming" and ms.periodic != config.periodic:
         raise ValueError(f"MeshConfig.periodic is {config.periodic} but the microstructure has periodic={ms.periodic} "
                          "(its inclusions are connected across the faces only when periodic); hint: build it with "

@@ -256,6 +256,27 @@ def test_a_field_negative_in_the_matrix_meshes_its_matrix_and_says_so(tmp_path):
     assert "note" not in with_sign[0]
 
 
+@pytest.mark.parametrize("dim, n", [(2, 64), (3, 20)])
+def test_default_sizes_follow_the_box(tmp_path, dim, n):
+    """With no sizes given, iis is 0.05 of the box's mean side: the same geometry in a box of 10 (a
+    field in mm) meshes as in a unit box, scaled, where an absolute 0.05 asked for about 1000 times
+    the elements and was refused by max_elements. The scaled file goes through the CLI's reader."""
+    x = np.arange(n) / n
+    t = np.stack(np.meshgrid(*[x] * dim, indexing="ij"), axis=-1) - 0.3
+    t -= np.round(t)
+    phi = np.linalg.norm(t, axis=-1) - 0.22
+    np.savez(tmp_path / "mm.npz", phi=10.0 * phi, box=np.full(dim, 10.0))
+    unit = mesh_rve(Microstructure.from_levelset(phi), MeshConfig())
+    scaled = mesh_rve(tmp_path / "mm.npz", MeshConfig())
+    assert unit.metadata["parameters"]["iis"] == 0.05 and scaled.metadata["parameters"]["iis"] == 0.5
+    assert scaled.metadata["validation"]["ok"] and abs(scaled.n_cells / unit.n_cells - 1) < 1e-3
+    vol = signed_volumes(scaled.points, scaled.cells)
+    assert abs(vol.sum() - 10.0**dim) < 1e-9 * 10.0**dim
+    assert MeshConfig().for_box((2.0, 1.0, 0.5)).iis == 0.05 and MeshConfig(iis=0.02).for_box((10.0,) * 3).iis == 0.02
+    with pytest.raises(ValueError, match=r"MeshConfig.h_max: expected >= iis = 0.5 \(the default"):
+        mesh_rve(tmp_path / "mm.npz", MeshConfig(h_max=0.2))
+
+
 def test_a_mesh_larger_than_max_elements_is_refused_before_the_surfaces():
     """The size function's estimate (2.5 c * integral of h^-3) is checked against max_elements: a
     clear error before any surface is meshed, for the size function and for a uniform h."""
