@@ -436,7 +436,8 @@ def test_bad_levelsets():
     sheet = np.abs(X[..., 0] - 0.5) - 0.3 / 24  # a sheet one node thick
     _raises("steps thick", Microstructure.from_levelset, sheet)
     _raises("box", Microstructure.from_levelset, phi, box=(1.0, 1.0))
-    _raises("equal grid spacing", Microstructure.from_levelset, phi, box=(1.0, 2.0, 1.0))
+    _raises(r"equal grid spacing .*if the voxels are cubic, the box is \(1.0, 1.0, 1.0\); .*resample the grid to one "
+            r"step first, e.g. to shape \(24, 48, 24\)", Microstructure.from_levelset, phi, box=(1.0, 2.0, 1.0))
     _raises("order", Microstructure.from_levelset, phi, order="quintic")
     _raises("from_labels", Microstructure.from_levelset, phi < 0)
 

@@ -671,9 +671,14 @@ def check_box(box, shape, where: str, allow_none: bool = True) -> tuple[float, .
                          f"Hint: e.g. box={(1.0,) * d}.")
     h = b / np.asarray(shape)
     if (h.max() - h.min()) > 1e-6 * h.max():
-        raise ValueError(f"{where} expected equal grid spacing L_i / n_i on every axis, got box "
-                         f"{tuple(b.tolist())} over shape {tuple(shape)}. Hint: pass "
-                         f"box={tuple(float(n * h.min()) for n in shape)}.")
+        finest = h.min()
+        counts = tuple(int(round(float(length / finest))) for length in b)
+        raise ValueError(f"{where} expected equal grid spacing L_i / n_i on every axis (cubic voxels), got box "
+                         f"{tuple(b.tolist())} over shape {tuple(shape)}: steps {tuple(float(f'{v:.6g}') for v in h)}. "
+                         f"Hint: if the voxels are cubic, the box is {tuple(float(n * finest) for n in shape)}; "
+                         f"if they are not, resample the grid to one step first, e.g. to shape {counts} "
+                         "(a periodic level set: scipy.ndimage.map_coordinates(phi, new sample positions in "
+                         "old steps, order=3, mode='grid-wrap')).")
     return tuple(float(x) for x in b)
 
 
