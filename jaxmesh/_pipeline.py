@@ -57,7 +57,7 @@ class MeshConfig:
             predicts more tetrahedra than this; None: no limit. The estimate is
             _TETS_PER_PREDICTED * c * integral of h^-3 (`cellwise_element_count`).
         roll: None (the box as given; when that fails with a MeshingError, a periodic file input or
-            grid-built Microstructure (`Microstructure.can_roll`) is meshed once more with "auto" and
+            periodic Microstructure (`Microstructure.can_roll`) is meshed once more with "auto" and
             metadata['roll']['after_failure'] keeps the first error), "auto" or d integers (zeros: as
             given, no second try): mesh a periodic grid rolled so that sample roll[a] lies at x_a = 0.
             "auto" takes, per axis, the grid plane farthest from every inclusion's extent bounds
@@ -150,8 +150,8 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redis
 
     if isinstance(source, Microstructure):
         if roll is not None and not source.can_roll:
-            raise ValueError("MeshConfig.roll needs an input file or a periodic Microstructure built from a grid "
-                             "(from_levelset, from_labels); hint: pass the path, or shift the analytic inclusions")
+            raise ValueError("MeshConfig.roll needs an input file or a periodic Microstructure built by "
+                             "from_levelset, from_labels or from_functions; hint: pass the path")
         if redistance:
             raise ValueError("MeshConfig.redistance needs an input file (the field is redistanced as it is read); "
                              "hint: Microstructure.from_levelset(phi, redistance=True)")
@@ -270,7 +270,7 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
 
 def _retry_config(source, config: MeshConfig, box) -> MeshConfig | None:
     """The configuration of a second try after a MeshingError: roll='auto' when the input is a periodic
-    file, or a periodic Microstructure built from a grid, meshed in its own frame (roll None; an
+    file, or a periodic Microstructure that can roll, meshed in its own frame (roll None; an
     explicit roll, zeros included, is kept) and rolling moves its box planes farther from the
     inclusions' extremes; else None."""
     from .geometry._microstructure import Microstructure

@@ -106,9 +106,9 @@ def test_roll_auto_meshes_a_grid_sphere_grazing_a_box_plane_without_slivers(tmp_
     assert quality_report(mesh)["min_dihedral_deg"] >= 10.0
     with pytest.raises(ValueError, match="periodic"):
         MeshConfig(roll="auto", periodic=False)
-    with pytest.raises(ValueError, match="input file"):
-        spec = InclusionSpec("sphere", np.array([0.5, 0.5, 0.5]), np.full(3, 0.2), np.eye(3))
-        mesh_rve(microstructure_from_specs([spec], (1.0, 1.0, 1.0), (n,) * 3), MeshConfig(roll="auto"))
+    spec = InclusionSpec("sphere", centre, np.full(3, radius), np.eye(3))  # the same sphere, analytic
+    analytic = mesh_rve(microstructure_from_specs([spec], (1.0, 1.0, 1.0), (n,) * 3), MeshConfig(roll="auto", h=0.08))
+    assert analytic.metadata["roll"]["samples"] == roll["samples"] and analytic.metadata["validation"]["ok"]
 
 
 def _grazing_sphere_file(path, n=24, radius=0.2):
@@ -123,7 +123,8 @@ def _grazing_sphere_file(path, n=24, radius=0.2):
 def test_a_failure_in_the_files_frame_is_meshed_again_rolled(tmp_path, monkeypatch):
     """roll None: a MeshingError in the file's own frame gets one more try with roll 'auto' (a valid
     mesh whose metadata keeps the first error); an explicit roll, zeros included, gets none. The same
-    grid given in memory (`Microstructure.from_levelset`) is rolled the same way."""
+    grid given in memory (`Microstructure.from_levelset`) is rolled the same way, and the same sphere as
+    an analytic inclusion in memory (`microstructure_from_specs`) by its function shifted."""
     from jaxmesh import Microstructure, MeshingError, _pipeline
 
     path = _grazing_sphere_file(tmp_path / "graze.npy")
@@ -153,6 +154,11 @@ def test_a_failure_in_the_files_frame_is_meshed_again_rolled(tmp_path, monkeypat
     in_memory = mesh_rve(Microstructure.from_levelset(np.load(path)), MeshConfig(h=0.08, seed=0), progress=lines.append)
     assert calls == [None, "auto"] and in_memory.metadata["roll"]["samples"] == roll["samples"]
     assert in_memory.metadata["validation"]["ok"] and len(in_memory.cells) == len(mesh.cells)
+    calls.clear()  # analytic inclusions in memory: their functions shifted
+    spec = InclusionSpec("sphere", np.array([0.2 - 2e-6, 0.47, 0.55]), np.full(3, 0.2), np.eye(3))
+    analytic = mesh_rve(microstructure_from_specs([spec], (1.0, 1.0, 1.0), (24,) * 3), MeshConfig(h=0.08, seed=0))
+    assert calls == [None, "auto"] and analytic.metadata["roll"]["samples"] == roll["samples"]
+    assert analytic.metadata["validation"]["ok"], analytic.metadata["validation"]
 
 
 def test_a_failure_no_frame_can_remove_is_not_meshed_again(tmp_path, monkeypatch):
@@ -189,9 +195,12 @@ def test_a_failure_that_rolling_cannot_help_is_raised_as_it_is(tmp_path, monkeyp
     np.save(tmp_path / "clear.npy", np.linalg.norm(X - 0.5, axis=-1) - 0.2)  # box planes already clearest
     with pytest.raises(MeshingError, match=r"^stage 'volume': recovery stopped \(roll None\)$"):
         mesh_rve(tmp_path / "clear.npy", MeshConfig(h=0.08))
-    with pytest.raises(MeshingError, match=r"\(roll None\)$"):  # analytic inclusions have no grid to roll
-        spec = InclusionSpec("sphere", np.array([0.2, 0.5, 0.5]), np.full(3, 0.2), np.eye(3))
+    spec = InclusionSpec("sphere", np.array([0.2, 0.5, 0.5]), np.full(3, 0.2), np.eye(3))
+    with pytest.raises(MeshingError, match=r"roll None.*meshed again with roll='auto', it failed too.*roll auto"):
         mesh_rve(microstructure_from_specs([spec], (1.0, 1.0, 1.0), (24,) * 3), MeshConfig(h=0.08))
+    with pytest.raises(MeshingError, match=r"\(roll None\)$"):  # a plain box's faces are the domain's: no retry
+        mesh_rve(microstructure_from_specs([spec], (1.0, 1.0, 1.0), (24,) * 3, periodic=False),
+                 MeshConfig(h=0.08, periodic=False))
 
 
 def test_a_sphere_touching_a_box_plane_is_meshed_again_rolled(tmp_path):

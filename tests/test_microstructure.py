@@ -633,7 +633,8 @@ def test_redistance_makes_a_field_a_distance_with_the_same_signs(periodic):
 
 def test_rolled_rebuilds_a_grid_microstructure_in_the_shifted_frame():
     """rolled(k): the grid read so that sample k lies at x = 0, so the field at x equals the original's at
-    x + k h (mod L), for level sets and labelled images; a plain box or analytic inclusions cannot roll."""
+    x + k h (mod L), for level sets, labelled images and analytic inclusions (whose description's centre
+    moves with them); a plain box cannot roll."""
     n = 24
     x = np.arange(n) / n
     X = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1)
@@ -651,6 +652,13 @@ def test_rolled_rebuilds_a_grid_microstructure_in_the_shifted_frame():
     assert not Microstructure.from_levelset(phi[4:-4, 4:-4, 4:-4], periodic=False).can_roll
     with pytest.raises(ValueError, match="rolled expected 3 integers"):
         Microstructure.from_levelset(phi).rolled((1, 2))
-    analytic = Microstructure.from_functions([lambda p: jnp.linalg.norm(p - 0.5, axis=-1) - 0.2], (1.0,) * 3, (n,) * 3)
-    with pytest.raises(ValueError, match="needs a periodic microstructure built from a grid"):
-        analytic.rolled((1, 0, 0))
+    analytic = Microstructure.from_functions([lambda p: jnp.linalg.norm(p - 0.5, axis=-1) - 0.2], (1.0,) * 3, (n,) * 3,
+                                             descriptions=[{"kind": "sphere", "center": [0.5, 0.5, 0.5]}])
+    moved = analytic.rolled((6, 0, 15))
+    shift = np.array([6, 0, 15]) / n
+    np.testing.assert_allclose(moved.phi(pts), analytic.phi(np.mod(pts + shift, 1.0)), atol=1e-12)
+    assert moved.inclusions[0].description["center"] == pytest.approx([0.25, 0.5, 0.875])
+    plain = Microstructure.from_functions([lambda p: jnp.linalg.norm(p - 0.5, axis=-1) - 0.2], (1.0,) * 3, (n,) * 3,
+                                          periodic=False)
+    with pytest.raises(ValueError, match="needs a periodic microstructure"):
+        plain.rolled((1, 0, 0))

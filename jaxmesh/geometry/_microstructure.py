@@ -246,20 +246,20 @@ class Microstructure:
                 raise ValueError(f"Microstructure expected {name} of shape {self.grid_shape}, "
                                  f"got {np.shape(a)}.")
         self._stacked = None
-        self._rebuild = None  # grid-built and periodic: samples -> the Microstructure of the rolled grid
+        self._rebuild = None  # periodic: samples -> the same Microstructure in the rolled frame
 
     def rolled(self, samples) -> Microstructure:
-        """The same periodic microstructure built from its grid rolled so that sample samples[a] lies at
-        x_a = 0 (the box faces move to x_a = samples[a] L_a / n_a of this frame), as `load_input(...,
-        roll=samples)` reads a file. For microstructures built by from_levelset / from_labels.
+        """The same periodic microstructure in the frame whose origin is sample samples[a] along each axis a
+        (the box faces move to x_a = samples[a] L_a / n_a of this frame), as `load_input(...,
+        roll=samples)` reads a file: from_levelset / from_labels rebuild from their grid rolled,
+        from_functions from its functions shifted (phi_rolled(x) = phi(x + samples h)).
 
         Example:
             >>> moved = ms.rolled((8, 0, 0))  # sample 8 along x now at x = 0; the grid is kept for this
         """
         if self._rebuild is None:
-            raise ValueError("Microstructure.rolled needs a periodic microstructure built from a grid "
-                             "(from_levelset, from_labels); hint: build it from the rolled samples, or shift "
-                             "the analytic inclusions")
+            raise ValueError("Microstructure.rolled needs a periodic microstructure (a plain box's faces are "
+                             "the domain's); hint: build it with periodic=True")
         if len(samples) != self.dim or not all(isinstance(k, (int, np.integer)) for k in samples):
             raise ValueError(f"Microstructure.rolled expected {self.dim} integers (grid samples per axis), "
                              f"got {samples!r}")
@@ -722,7 +722,12 @@ class Microstructure:
             Inclusion(c, phi, lo, hi, vol, desc)
             for c, (phi, (lo, hi), vol, desc) in enumerate(zip(phis, bounds, volumes, descriptions), start=1)
         ]
-        return cls(box, periodic, inclusions, shape, dn1, dn2, nearest, reach_len)
+        ms = cls(box, periodic, inclusions, shape, dn1, dn2, nearest, reach_len)
+        if periodic:
+            ms._rebuild = functools.partial(_from_shifted_functions, functools.partial(
+                cls.from_functions, box=box, grid_shape=shape, periodic=True, volumes=volumes, reach=reach),
+                fns, descriptions, spacing)
+        return ms
 
 
 def _reach_steps(reach, lengths, shape, spacing, r_min) -> float:
@@ -763,6 +768,21 @@ def _check_gaps(dn1, dn2, nearest, labels, spacing, n: int, periodic: bool):
     if missing:
         raise ValueError(f"from_functions expected every inclusion to own grid nodes, got {missing} hidden "
                          "inside others. Hint: remove nested or duplicated inclusions.")
+
+
+def _shifted(fn: Callable, offset: np.ndarray, points):
+    return fn(points + offset)
+
+
+def _from_shifted_functions(build: Callable, fns, descriptions, spacing: np.ndarray,
+                            samples: tuple[int, ...]) -> Microstructure:
+    """build(each function shifted so that x = 0 is sample `samples` of this frame); a description's
+    "center" moves with it."""
+    offset = np.asarray(samples) * spacing
+    box = np.asarray(build.keywords["box"], float)
+    moved = [dict(d, center=np.mod(np.asarray(d["center"], float) - offset, box).tolist()) if "center" in d else d
+             for d in descriptions]
+    return build([functools.partial(_shifted, f, offset) for f in fns], descriptions=moved)
 
 
 def _from_rolled_grid(build: Callable, grid: np.ndarray, samples: tuple[int, ...]) -> Microstructure:
