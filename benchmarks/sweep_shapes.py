@@ -216,6 +216,13 @@ def _numpy_spheres(seed: int, count: int, n: int):
     return case
 
 
+def case_numpy_spheres_mm(out: Path):
+    """numpy_spheres_s1 written in millimetres: the field times 10 over a 10 mm box (an .npz with `box`)."""
+    path, extra, note = _numpy_spheres(1, 25, 40)(out)
+    np.savez(p := out / "numpy_spheres_mm.npz", phi=10.0 * np.load(path), box=np.full(3, 10.0))
+    return p, extra, f"{note}; x 10 in a 10 mm box"
+
+
 def case_algebraic_ellipsoids(out: Path, n=48, seed=3, count=20):
     def make(rng):
         axes = rng.uniform(0.1, 0.16) * np.array([1.0, rng.uniform(0.5, 0.9), rng.uniform(0.5, 0.9)])
@@ -330,6 +337,7 @@ CASES = {
     "numpy_spheres_s1": _numpy_spheres(1, 25, 40),
     "numpy_spheres_s2": _numpy_spheres(2, 40, 48),
     "algebraic_ellipsoids": case_algebraic_ellipsoids,
+    "numpy_spheres_mm": case_numpy_spheres_mm,
 }
 
 
