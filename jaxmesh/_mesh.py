@@ -327,6 +327,13 @@ class Mesh:
         """The facet table of the cells (see `facet_table`)."""
         return facet_table(self.cells, self.n_points)
 
+    def interface_nodes(self) -> np.ndarray:
+        """Sorted ids of the nodes on an interface: a facet whose two cells have different inclusion ids."""
+        table = self.facets()
+        two, cells = table.pairs()
+        between = two[self.inclusion_id[cells[:, 0]] != self.inclusion_id[cells[:, 1]]]
+        return np.unique(table.facets[between])
+
     def boundary_facets(self) -> dict[str, np.ndarray]:
         """Outward-oriented boundary facets (in one cell) per box face name, {name: (k, d)}."""
         table = self.facets()

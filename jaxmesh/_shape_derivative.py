@@ -21,15 +21,6 @@ import optimistix as optx
 from ._mesh import Mesh, on_box_planes
 
 
-def interface_nodes(mesh: Mesh) -> np.ndarray:
-    """Sorted ids of the nodes on an interface: a facet whose two cells have different inclusion ids."""
-    table = mesh.facets()
-    two, cells = table.pairs()
-    ids = np.asarray(mesh.inclusion_id)
-    between = two[ids[cells[:, 0]] != ids[cells[:, 1]]]
-    return np.unique(table.facets[between])
-
-
 def _directions(points, grad, locked):
     """Unit directions: the level set's gradient without the locked axes; zero where too little is left
     (a node on a box edge whose interface is nearly perpendicular to it, a box corner)."""
@@ -68,7 +59,7 @@ def move_interface_nodes(mesh: Mesh, phi_fn: Callable, params, *, rtol: float = 
         raise ValueError(f"expected a jaxmesh Mesh, got {type(mesh).__name__}; hint: mesh_rve(...) returns one")
     if not callable(phi_fn):
         raise ValueError(f"expected phi_fn a callable (points, params) -> values, got {type(phi_fn).__name__}")
-    nodes = interface_nodes(mesh)
+    nodes = mesh.interface_nodes()
     box = np.asarray(mesh.box, dtype=float)
     start = jnp.asarray(mesh.points[nodes])
     locked = jnp.asarray(on_box_planes(mesh.points[nodes], box).any(axis=2))
