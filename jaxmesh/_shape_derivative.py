@@ -21,7 +21,7 @@ import optimistix as optx
 from ._mesh import Mesh, on_box_planes
 
 
-def _directions(points, grad, locked):
+def _directions(grad, locked):
     """Unit directions: the level set's gradient without the locked axes; zero where too little is left
     (a node on a box edge whose interface is nearly perpendicular to it, a box corner)."""
     free = jnp.where(locked, 0.0, grad)
@@ -64,11 +64,13 @@ def move_interface_nodes(mesh: Mesh, phi_fn: Callable, params, *, rtol: float = 
     start = jnp.asarray(mesh.points[nodes])
     locked = jnp.asarray(on_box_planes(mesh.points[nodes], box).any(axis=2))
     grad = jax.grad(lambda x: jnp.sum(phi_fn(x, params)))(start)
-    direction = jax.lax.stop_gradient(_directions(start, grad, locked))
+    direction = jax.lax.stop_gradient(_directions(grad, locked))
     scale = float(box.max())
 
-    def residual(t, p):  # one root per node: the Jacobian is diagonal, tagged so
-        return phi_fn(start + t[:, None] * direction, p)
+    moves = jnp.any(direction != 0, axis=1)
+
+    def residual(t, p):  # one root per node: the Jacobian is diagonal, tagged so; a node that cannot move: t = 0
+        return jnp.where(moves, phi_fn(start + t[:, None] * direction, p), t)
 
     solver = optx.Newton(rtol=rtol, atol=rtol * scale, linear_solver=lx.Diagonal())
     sol = optx.root_find(residual, solver, jnp.zeros(len(nodes), start.dtype), args=params,
