@@ -31,11 +31,16 @@ def _directions(grad, locked):
     return jnp.where(usable, free / jnp.where(usable, norm, 1.0), 0.0)
 
 
-def move_interface_nodes(mesh: Mesh, phi_fn: Callable, params, *, rtol: float = 1e-12, max_steps: int = 32):
+def move_interface_nodes(mesh: Mesh, phi_fn: Callable, params, *, reference=None, rtol: float = 1e-12,
+                         max_steps: int = 32):
     """The mesh's points, its interface nodes moved onto the zero set of phi_fn(points, params).
 
-    Each interface node x0 moves to x0 + t d, phi_fn(x0 + t d, params) = 0, with d the unit gradient
-    of phi_fn at x0 (held fixed: it does not depend on params), its components along the box planes
+    Each interface node x0 moves to x0 + t d, phi_fn(x0 + t d, params) = c, with c = 0, or with
+    reference given c = phi_fn(x0, reference): the level of phi_fn through the node, so that at
+    params = reference the points are the mesh's exactly, whatever interpolant phi_fn is (the global
+    B-spline of a grid of many inclusions is not the mesher's per-inclusion one: their zero sets part
+    by a fraction of a grid step beside other inclusions; `benchmarks/bench_shape_derivative.py`).
+    d is the unit gradient of phi_fn at x0 (held fixed: it does not depend on params), its components along the box planes
     the node lies on removed (trace nodes stay on their face, box-edge nodes on their edge; box
     corners stay). Periodic copies are set to the exact translates of the nodes on the 0 faces. Only
     points are returned; cells, labels and pairs are the mesh's.
@@ -46,6 +51,8 @@ def move_interface_nodes(mesh: Mesh, phi_fn: Callable, params, *, rtol: float = 
         phi_fn: (points (k, d), params) -> (k,) JAX-traceable, negative inside the inclusions: one
             field for all of them (the minimum over inclusions, as a level-set file holds).
         params: a pytree of arrays (grid values, radii, ...), the variable of jax.grad / jax.jvp.
+        reference: None (nodes go to the zero set), or the params the mesh was made from (nodes keep
+            the level of phi_fn through them; no derivative flows through it).
         rtol, max_steps: the Newton solver's tolerance (relative to the box) and step limit.
     Returns:
         (n, d) JAX array of points, differentiable with respect to params.
@@ -63,6 +70,7 @@ def move_interface_nodes(mesh: Mesh, phi_fn: Callable, params, *, rtol: float = 
     box = np.asarray(mesh.box, dtype=float)
     start = jnp.asarray(mesh.points[nodes])
     locked = jnp.asarray(on_box_planes(mesh.points[nodes], box).any(axis=2))
+    level = 0.0 if reference is None else jax.lax.stop_gradient(phi_fn(start, reference))
     grad = jax.grad(lambda x: jnp.sum(phi_fn(x, params)))(start)
     direction = jax.lax.stop_gradient(_directions(grad, locked))
     scale = float(box.max())
@@ -70,7 +78,7 @@ def move_interface_nodes(mesh: Mesh, phi_fn: Callable, params, *, rtol: float = 
     moves = jnp.any(direction != 0, axis=1)
 
     def residual(t, p):  # one root per node: the Jacobian is diagonal, tagged so; a node that cannot move: t = 0
-        return jnp.where(moves, phi_fn(start + t[:, None] * direction, p), t)
+        return jnp.where(moves, phi_fn(start + t[:, None] * direction, p) - level, t)
 
     solver = optx.Newton(rtol=rtol, atol=rtol * scale, linear_solver=lx.Diagonal())
     sol = optx.root_find(residual, solver, jnp.zeros(len(nodes), start.dtype), args=params,

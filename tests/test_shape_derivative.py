@@ -63,29 +63,38 @@ def test_inclusion_volume_derivative_is_its_interface_area(cut_sphere):
 
 
 def test_gradient_with_respect_to_the_grid_values():
-    """A mesh of a sampled level set and its cubic B-spline: the gradient of the inclusion volume with
-    respect to all 24^3 grid values, checked along a random direction against central differences;
-    a uniform rise of the field shrinks the inclusion by about its interface area."""
+    """A mesh of a sampled level set of two spheres 1.5 grid steps apart, and the grid's global cubic
+    B-spline: with reference= the mesh's values the nodes follow the B-spline's level through them (the
+    points there are the mesh's exactly); the gradient of an inclusion's volume with respect to all 24^3
+    grid values, checked along a random direction against central differences; a uniform rise of the
+    field shrinks the inclusions by about their interface area."""
     n = 24
     x = np.arange(n) / n
-    offset = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1) - np.array([0.5, 0.05, 0.5])
-    offset -= np.round(offset)
-    values = np.linalg.norm(offset, axis=-1) - 0.22
+    grid = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1)
+    values = np.full((n,) * 3, np.inf)
+    for centre, radius in (((0.5, 0.05, 0.5), 0.22), ((0.5, 0.05 + 0.44 + 1.5 / n, 0.5), 0.22)):
+        offset = grid - np.array(centre)
+        values = np.minimum(values, np.linalg.norm(offset - np.round(offset), axis=-1) - radius)
     mesh = mesh_rve(Microstructure.from_levelset(values), MeshConfig(h=0.08, seed=0))
+    v0 = jnp.asarray(values)
 
     def phi(points, v):  # as the README writes it
         return interpolate(make_levelset_grid(v, (1.0,) * 3), points, order="cubic")
 
     def volume(v):
-        return phase_volume(move_interface_nodes(mesh, phi, v), mesh.cells, mesh.phase == 1)
+        return phase_volume(move_interface_nodes(mesh, phi, v, reference=v0), mesh.cells, mesh.inclusion_id == 1)
 
-    assert np.abs(np.asarray(move_interface_nodes(mesh, phi, jnp.asarray(values))) - mesh.points).max() < 1e-10
-    grad = np.asarray(jax.grad(volume)(jnp.asarray(values)))
+    np.testing.assert_array_equal(np.asarray(move_interface_nodes(mesh, phi, v0, reference=v0)), mesh.points)
+    grad = np.asarray(jax.grad(volume)(v0))
     direction = 0.01 * np.random.default_rng(0).standard_normal(values.shape)
     eps = 1e-4
     fd = float(volume(values + eps * direction) - volume(values - eps * direction)) / (2 * eps)
     assert float(np.sum(grad * direction)) == pytest.approx(fd, rel=1e-6)
-    assert -grad.sum() == pytest.approx(_interface_area(mesh), rel=0.03)
+    area = _interface_area(mesh)  # both spheres
+    both = jax.grad(lambda v: phase_volume(move_interface_nodes(mesh, phi, v, reference=v0), mesh.cells,
+                                           mesh.phase == 1))(v0)
+    # -integral of dS / |grad phi|: the B-spline's |grad phi| strays from 1 in the 1.5-step gap (measured 3 %)
+    assert -float(jnp.sum(both)) == pytest.approx(area, rel=0.05)
 
 
 def test_circle_area_derivative_in_2d():
