@@ -39,7 +39,7 @@ def move_interface_nodes(mesh: Mesh, phi_fn: Callable, params, *, reference=None
     reference given c = phi_fn(x0, reference): the level of phi_fn through the node, so that at
     params = reference the points are the mesh's exactly, whatever interpolant phi_fn is (the global
     B-spline of a grid of many inclusions is not the mesher's per-inclusion one: their zero sets part
-    by a fraction of a grid step beside other inclusions; `benchmarks/bench_shape_derivative.py`).
+    by a fraction of a grid step; `benchmarks/bench_shape_derivative.py`).
     d is the unit gradient of phi_fn at x0 (held fixed: it does not depend on params), its components along the box planes
     the node lies on removed (trace nodes stay on their face, box-edge nodes on their edge; box
     corners stay). Periodic copies are set to the exact translates of the nodes on the 0 faces. Only
