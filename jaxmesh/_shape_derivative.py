@@ -39,15 +39,15 @@ def move_interface_nodes(mesh: Mesh, phi_fn: Callable, params, *, reference=None
     reference given c = phi_fn(x0, reference): the level of phi_fn through the node, so that at
     params = reference the points are the mesh's exactly, whatever interpolant phi_fn is (the global
     B-spline of a grid of many inclusions is not the mesher's per-inclusion one: their zero sets part
-    by a fraction of a grid step; `benchmarks/bench_shape_derivative.py`).
-    d is the unit gradient of phi_fn at x0 (held fixed: it does not depend on params), its components along the box planes
-    the node lies on removed (trace nodes stay on their face, box-edge nodes on their edge; box
+    by a fraction of a grid step; `benchmarks/bench_shape_derivative.py`). d is the unit gradient of
+    phi_fn at x0 (held fixed: it does not depend on params) without its components across the box
+    planes the node lies on (trace nodes stay on their face, box-edge nodes on their edge; box
     corners stay). Periodic copies are set to the exact translates of the nodes on the 0 faces. Only
     points are returned; cells, labels and pairs are the mesh's.
 
     Args:
-        mesh: a `Mesh` from `mesh_rve` (2D or 3D), whose interfaces lie on phi_fn(., params) = 0 near
-            the given params (e.g. the level set it was meshed from).
+        mesh: a `Mesh` from `mesh_rve` (2D or 3D) of the level set phi_fn(., reference) (or one close
+            to it: its interface nodes are moved from where they are).
         phi_fn: (points (k, d), params) -> (k,) JAX-traceable, negative inside the inclusions: one
             field for all of them (the minimum over inclusions, as a level-set file holds).
         params: a pytree of arrays (grid values, radii, ...), the variable of jax.grad / jax.jvp.
