@@ -242,9 +242,10 @@ def _resolve_size(ms, h, size_kwargs) -> _Size:
         if h is not None:
             raise ValueError("expected either h or size-function parameters (iis, nb_el, ...), got both; "
                              "hint: pass h=None to use the size function")
+        from ._pipeline import default_iis
         from ._sizing import SizeParams, size_function
 
-        h = size_function(ms, SizeParams(**size_kwargs))
+        h = size_function(ms, SizeParams(**{"iis": default_iis(ms.box), **size_kwargs}))
     if isinstance(h, (int, float, np.floating, np.integer)) and not isinstance(h, bool):
         h = float(h)
         if not (np.isfinite(h) and 0 < h <= 0.25 * box.min()):
@@ -499,7 +500,8 @@ def mesh_2d(
             exactly the box, inclusions cut by it are clipped, there are no periodic pairs.
         h: target edge length: a float (uniform), a ``SizeField`` (``size_function``), or None for
             the size function with ``SizeParams(iis=..., nb_el=..., curv_alpha=..., grad=..., h_max=...)``
-            (only the given ones; the others take SizeParams' defaults).
+            (only the given ones; the others take SizeParams' defaults, and iis 0.05 times the box's mean
+            side, as `MeshConfig`).
         config: :class:`Mesh2DConfig`. seed: random seed of the interior node jitter.
     Returns:
         ``Mesh`` with triangles (counter-clockwise), ``inclusion_id`` per triangle (0 = matrix),

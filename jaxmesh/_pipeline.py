@@ -33,6 +33,11 @@ _FIELD_HINTS = {
 DEFAULT_IIS = 0.05  # of the box's mean side: the paper's coarse setting on a unit box
 
 
+def default_iis(box) -> float:
+    """DEFAULT_IIS times the box's mean side (the geometric mean of its sides)."""
+    return float(f"{DEFAULT_IIS * math.prod(box) ** (1.0 / len(box)):.12g}")  # 0.5, not 0.49999999999999994
+
+
 @dataclasses.dataclass(frozen=True)
 class MeshConfig:
     """Parameters of :func:`mesh_rve`, validated on construction.
@@ -115,7 +120,7 @@ class MeshConfig:
         """This configuration with iis set: DEFAULT_IIS times the box's mean side when it is None."""
         if self.iis is not None:
             return self
-        iis = float(f"{DEFAULT_IIS * math.prod(box) ** (1.0 / len(box)):.12g}")  # 0.5, not 0.49999999999999994
+        iis = default_iis(box)
         if self.h_max is not None and self.h_max < iis:
             raise ValueError(f"MeshConfig.h_max: expected >= iis = {iis:g} (the default, {DEFAULT_IIS} times the box's "
                              f"mean side), got {self.h_max}; hint: pass iis too, or a larger h_max")

@@ -273,6 +273,11 @@ def test_default_sizes_follow_the_box(tmp_path, dim, n):
     vol = signed_volumes(scaled.points, scaled.cells)
     assert abs(vol.sum() - 10.0**dim) < 1e-9 * 10.0**dim
     assert MeshConfig().for_box((2.0, 1.0, 0.5)).iis == 0.05 and MeshConfig(iis=0.02).for_box((10.0,) * 3).iis == 0.02
+    if dim == 2:  # mesh_2d called directly takes the same default
+        from jaxmesh import mesh_2d
+
+        direct = mesh_2d(Microstructure.from_levelset(10.0 * phi, box=(10.0, 10.0)))
+        assert abs(direct.n_cells / unit.n_cells - 1) < 1e-3
     with pytest.raises(ValueError, match=r"MeshConfig.h_max: expected >= iis = 0.5 \(the default"):
         mesh_rve(tmp_path / "mm.npz", MeshConfig(h_max=0.2))
 
