@@ -21,6 +21,7 @@ from ._quality import cell_quality as cell_quality
 from ._quality import dihedral_angles as dihedral_angles
 from ._quality import min_angles as min_angles
 from ._quality import quality_report as quality_report
+from ._shape_derivative import effective_conductivity as effective_conductivity
 from ._shape_derivative import move_interface_nodes as move_interface_nodes
 from ._shape_derivative import phase_volume as phase_volume
 from ._sizing import SizeField as SizeField

@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmesh import (MeshConfig, Microstructure, interpolate, make_levelset_grid, mesh_rve, move_interface_nodes,
-                     phase_volume, sphere_sdf)
+from jaxmesh import (MeshConfig, Microstructure, effective_conductivity, homogenize_conductivity, interpolate,
+                     make_levelset_grid, mesh_rve, move_interface_nodes, phase_volume, sphere_sdf)
 from jaxmesh._quality import signed_volumes
 
 RADIUS = 0.25
@@ -60,6 +60,23 @@ def test_inclusion_volume_derivative_is_its_interface_area(cut_sphere):
         np.testing.assert_array_equal(moved[pairs[:, 1]], moved[pairs[:, 0]] + np.eye(3)[axis])
     assert signed_volumes(moved, mesh.cells).min() > 0
     assert volume(RADIUS + 0.005) > volume(RADIUS)
+
+
+def test_effective_conductivity_and_its_derivative_by_the_radius(cut_sphere):
+    """The JAX cell problems equal homogenize_conductivity (scipy) on the mesh, and d k_eff / d radius
+    through the moved nodes equals central differences."""
+    mesh, phi = cut_sphere
+    ks = {0: 1.0, 1: 10.0}
+    np.testing.assert_allclose(np.asarray(effective_conductivity(mesh, mesh.points, ks, by="phase")),
+                               homogenize_conductivity(mesh, ks, by="phase", solver="direct"), rtol=0, atol=1e-10)
+
+    def mean_conductivity(r):
+        points = move_interface_nodes(mesh, phi, r, reference=RADIUS)
+        return jnp.trace(effective_conductivity(mesh, points, ks, by="phase")) / 3
+
+    grad = float(jax.grad(mean_conductivity)(RADIUS))
+    fd = float(mean_conductivity(RADIUS + 1e-5) - mean_conductivity(RADIUS - 1e-5)) / 2e-5
+    assert grad > 0 and grad == pytest.approx(fd, rel=1e-6)
 
 
 def test_gradient_with_respect_to_the_grid_values():
