@@ -114,7 +114,8 @@ def effective_conductivity(mesh: Mesh, points, conductivity, *, by: str = "inclu
     effective conductivity's shape derivative.
 
     Args:
-        mesh: a periodic `Mesh` (its cells, labels and periodic pairs; its points are not used).
+        mesh: a periodic `Mesh` (its cells, labels and periodic pairs; its own points only set the CG's
+            absolute tolerance and are checked for flat cells).
         points: (n, d) node positions, e.g. `move_interface_nodes(mesh, phi_fn, params)`.
         conductivity, by: as `homogenize_conductivity` (one positive value per id).
         rtol, max_steps: the CG tolerance and step limit (None: 10 n).
