@@ -21,6 +21,16 @@ import optimistix as optx
 from ._mesh import Mesh, on_box_planes
 
 
+def _measures_and_gradients(points, cells):
+    """JAX twin of `_homogenize._p1_gradients` (no flat-cell check): cell measures (m,) and the constant
+    P1 shape-function gradients (m, d+1, d)."""
+    x = jnp.asarray(points)[np.asarray(cells)]
+    edges = x[:, 1:] - x[:, :1]  # row r = x_{r+1} - x_0
+    inverse_t = jnp.swapaxes(jnp.linalg.inv(edges), 1, 2)
+    grads = jnp.concatenate([-inverse_t.sum(axis=1, keepdims=True), inverse_t], axis=1)
+    return jnp.abs(jnp.linalg.det(edges)) / (2.0 if x.shape[-1] == 2 else 6.0), grads
+
+
 def _directions(grad, locked):
     """Unit directions: the level set's gradient without the locked axes; zero where too little is left
     (a node on a box edge whose interface is nearly perpendicular to it, a box corner)."""
@@ -98,10 +108,9 @@ def phase_volume(points, cells, selected) -> jax.Array:
     Args:
         points: (n, d) JAX or NumPy array; cells: (m, d + 1) ids; selected: (m,) bool mask.
     """
-    p = jnp.asarray(points)[np.asarray(cells)[np.asarray(selected, dtype=bool)]]
-    edges = p[:, 1:] - p[:, :1]
-    d = p.shape[-1]
-    return jnp.sum(jnp.abs(jnp.linalg.det(edges))) / (2.0 if d == 2 else 6.0)
+    x = jnp.asarray(points)[np.asarray(cells)[np.asarray(selected, dtype=bool)]]
+    edges = x[:, 1:] - x[:, :1]
+    return jnp.sum(jnp.abs(jnp.linalg.det(edges))) / (2.0 if x.shape[-1] == 2 else 6.0)
 
 
 def effective_conductivity(mesh: Mesh, points, conductivity, *, by: str = "inclusion_id", rtol: float = 1e-10,
@@ -133,14 +142,12 @@ def effective_conductivity(mesh: Mesh, points, conductivity, *, by: str = "inclu
         raise ValueError(f"expected a jaxmesh Mesh, got {type(mesh).__name__}; hint: mesh_rve(...) returns one")
     classes, n_classes = _periodic_classes(mesh)
     d = mesh.dim
-    k = jnp.asarray(_cell_conductivity(mesh, conductivity, by))
-    x = jnp.asarray(points)[np.asarray(mesh.cells)]
-    edges = x[:, 1:] - x[:, :1]
-    inverse_t = jnp.swapaxes(jnp.linalg.inv(edges), 1, 2)
-    grads = jnp.concatenate([-inverse_t.sum(axis=1, keepdims=True), inverse_t], axis=1)  # (m, d+1, d)
-    weight = k * jnp.abs(jnp.linalg.det(edges)) / (2.0 if d == 2 else 6.0)
+    k = _cell_conductivity(mesh, conductivity, by)
+    measure, grads = _measures_and_gradients(points, mesh.cells)  # grads (m, d+1, d)
+    weight = jnp.asarray(k) * measure
+    dtype = weight.dtype
     owner = jnp.asarray(classes[mesh.cells])  # (m, d+1) class of each cell vertex
-    free = jnp.ones(n_classes, dtype=x.dtype).at[0].set(0.0)  # class 0 pinned: the constant is free
+    free = jnp.ones(n_classes, dtype=dtype).at[0].set(0.0)  # class 0 pinned: the constant is free
 
     def to_classes(per_vertex):  # (m, d+1) -> (n_classes,)
         return jax.ops.segment_sum(per_vertex.ravel(), owner.ravel(), n_classes)
@@ -152,21 +159,21 @@ def effective_conductivity(mesh: Mesh, points, conductivity, *, by: str = "inclu
         flux = weight[:, None] * fluctuation_gradient(free * w)
         return free * to_classes(jnp.einsum("mad,md->ma", grads, flux)) + (1.0 - free) * w
 
-    structure = jax.ShapeDtypeStruct((n_classes,), x.dtype)
+    structure = jax.ShapeDtypeStruct((n_classes,), dtype)
     operator = lx.FunctionLinearOperator(stiffness, structure, tags=(lx.symmetric_tag, lx.positive_semidefinite_tag))
     # Jacobi; it changes the iterations, not the solution, so no derivative flows through it (lineax's rule)
     diagonal = jax.lax.stop_gradient(free * to_classes(weight[:, None] * jnp.sum(grads**2, axis=2)) + (1.0 - free))
     preconditioner = lx.TaggedLinearOperator(lx.DiagonalLinearOperator(1.0 / diagonal), lx.positive_semidefinite_tag)
     # lineax's CG scales the residual entrywise by atol + rtol |load|, and most loads are 0 (nodes off the
     # interfaces): atol from the loads at the mesh's own points, a concrete number under jit and grad
-    grads0, measure0 = _p1_gradients(np.asarray(mesh.points, float), np.asarray(mesh.cells))
-    loads0 = np.asarray(_cell_conductivity(mesh, conductivity, by) * measure0)[:, None, None] * grads0
+    grads0, measure0 = _p1_gradients(np.asarray(mesh.points, float), np.asarray(mesh.cells))  # refuses flat cells
+    loads0 = (k * measure0)[:, None, None] * grads0
     load_scale = max(float(np.abs(np.bincount(classes[mesh.cells].ravel(), loads0[..., j].ravel())).max())
                      for j in range(d))
     solver = lx.CG(rtol=rtol, atol=rtol * load_scale, max_steps=max_steps or 10 * n_classes)
     total = []
     for j in range(d):
-        unit = jnp.zeros(d, dtype=x.dtype).at[j].set(1.0)
+        unit = jnp.zeros(d, dtype=dtype).at[j].set(1.0)
         load = -free * to_classes(jnp.einsum("mad,d->ma", grads, unit) * weight[:, None])
         w = lx.linear_solve(operator, load, solver, options={"preconditioner": preconditioner}).value
         total.append(unit + fluctuation_gradient(w))

@@ -19,6 +19,7 @@ import sys
 import meshio
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.csgraph as csgraph
 import scipy.sparse.linalg as spla
 import skfem
 from skfem.helpers import dot, grad
@@ -26,21 +27,9 @@ from skfem.helpers import dot, grad
 
 def _periodic_classes(n: int, periodic) -> np.ndarray:
     """Each node's class id: the $Periodic pairs (slave, master) joined, chains and corners included."""
-    parent = np.arange(n)
-
-    def root(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for _, _, _, pairs in periodic:
-        for slave, master in np.asarray(pairs, dtype=np.int64):
-            a, b = root(slave), root(master)
-            if a != b:
-                parent[max(a, b)] = min(a, b)
-    roots = np.array([root(i) for i in range(n)])
-    return np.unique(roots, return_inverse=True)[1]
+    pairs = np.concatenate([np.asarray(p, dtype=np.int64).reshape(-1, 2) for _, _, _, p in periodic])
+    graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    return csgraph.connected_components(graph, directed=False)[1]
 
 
 def skfem_conductivity(path: str, k_matrix: float, k_inclusion: float) -> np.ndarray:

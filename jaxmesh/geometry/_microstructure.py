@@ -780,7 +780,7 @@ def _from_shifted_functions(build: Callable, fns, descriptions, spacing: np.ndar
     "center" moves with it."""
     offset = np.asarray(samples) * spacing
     box = np.asarray(build.keywords["box"], float)
-    moved = [dict(d, center=np.mod(np.asarray(d["center"], float) - offset, box).tolist()) if "center" in d else d
+    moved = [dict(d, center=wrap(np.asarray(d["center"], float) - offset, box).tolist()) if "center" in d else d
              for d in descriptions]
     return build([functools.partial(_shifted, f, offset) for f in fns], descriptions=moved)
 
