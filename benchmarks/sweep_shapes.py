@@ -195,11 +195,11 @@ def sd_algebraic_ellipsoid(p, axes):
     return min(axes) * (np.linalg.norm(p / np.asarray(axes), axis=-1) - 1.0)
 
 
-def _needle(redistance: bool):
+def _needle(options: list[str]):
     def case(out: Path, n=32):
         phi = sd_algebraic_ellipsoid(_local(_grid(n), (0.5, 0.5, 0.5)), (0.3, 0.05, 0.05))
         np.save(p := out / "needle.npy", phi)
-        return p, ["--redistance"] if redistance else [], "algebraic ellipsoid 0.3 x 0.05 x 0.05, tips a quarter step"
+        return p, options, "algebraic ellipsoid 0.3 x 0.05 x 0.05, tips a quarter step"
     return case
 
 
@@ -332,8 +332,9 @@ CASES = {
     "gyroid_03": _gyroid("gyroid_03", 0.3, 48),
     "grf_perc_s1": _excursion(1, "0.2", "0.15", "48", "grf_perc", "percolating blobs"),
     "grf_perc_s2": _excursion(2, "0.2", "0.15", "48", "grf_perc", "percolating blobs"),
-    "needle": _needle(redistance=False),
-    "needle_redistanced": _needle(redistance=True),
+    "needle": _needle([]),  # as given, then redistanced after the stalled-node error
+    "needle_as_given": _needle(["--no-redistance"]),
+    "needle_redistanced": _needle(["--redistance"]),
     "numpy_spheres_s1": _numpy_spheres(1, 25, 40),
     "numpy_spheres_s2": _numpy_spheres(2, 40, 48),
     "algebraic_ellipsoids": case_algebraic_ellipsoids,

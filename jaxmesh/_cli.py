@@ -231,7 +231,10 @@ def _box_plane_info(ms) -> dict:
 
 _REDISTANCE_HELP = ("level-set inputs: first make the field a first-order signed distance to its zero set (same "
                      "signs at every node, the interface moved within its cells): for fields far from a distance, "
-                     "e.g. a thresholded random field, whose nearly flat saddles fold the surfaces")
+                     "e.g. a thresholded random field, whose nearly flat saddles fold the surfaces. Default: the "
+                     "field as given, and once more redistanced when a fold or a node stalled off the level set "
+                     "stops the run (the report's metadata.redistance.after_failure keeps the first error); "
+                     "--no-redistance: never")
 
 
 def _cmd_mesh(args: argparse.Namespace) -> int:
@@ -376,7 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "leave thin wedges of bad elements). The mesh is in the rolled frame; the report's "
                         "metadata.roll gives the offset. Without --roll, a periodic file input whose meshing fails "
                         "is meshed once more with 'auto' (--roll 0 0 0: never)")
-    m.add_argument("--redistance", action="store_true", help=_REDISTANCE_HELP)
+    m.add_argument("--redistance", action=argparse.BooleanOptionalAction, default=None, help=_REDISTANCE_HELP)
     m.add_argument("--seed", type=int, default=0)
     m.add_argument("--report", default=None, help="JSON report path")
     m.add_argument("--plot", default=None, help="PNG path: mesh coloured by phase + quality histogram")

@@ -6,13 +6,17 @@ class MeshingError(RuntimeError):
 
     Carries the stage name and, where it applies, the inclusion id, so that a user
     can tell which part of a large RVE caused the failure. frame_dependent=False marks a
-    cause that moving the box planes cannot remove (mesh_rve then skips its rolled retry).
+    cause that moving the box planes cannot remove (mesh_rve then skips its rolled retry);
+    redistance_helps=True one that a first-order signed distance of the field removes (a level set far
+    from a distance: mesh_rve meshes a level-set file once more redistanced).
     """
 
-    def __init__(self, stage: str, message: str, inclusion: int | None = None, *, frame_dependent: bool = True):
+    def __init__(self, stage: str, message: str, inclusion: int | None = None, *, frame_dependent: bool = True,
+                 redistance_helps: bool = False):
         self.stage = stage
         self.inclusion = inclusion
         self.message = message
         self.frame_dependent = frame_dependent
+        self.redistance_helps = redistance_helps
         where = f"stage '{stage}'" + (f", inclusion {inclusion}" if inclusion is not None else "")
         super().__init__(f"{where}: {message}")

@@ -451,7 +451,8 @@ def _raise_intersections(microstructure, mesh: SurfaceMesh, bad: np.ndarray, res
     tried = (f" (inclusions {sorted(resampled)} also resampled at {list(_RESAMPLE_SCALES)} of the marching-cubes "
              "step)" if resampled else "")
     raise MeshingError("surfaces", f"{len(bad)} intersecting triangle pairs (regions {ids.tolist()}), the "
-                       f"first near x = {x}{tried}; {cause}", frame_dependent=slope >= _FLAT_SLOPE)
+                       f"first near x = {x}{tried}; {cause}", frame_dependent=slope >= _FLAT_SLOPE,
+                       redistance_helps=slope < _FLAT_SLOPE)
 
 
 def _gradient_norm(microstructure, x: np.ndarray) -> float:

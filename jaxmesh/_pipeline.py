@@ -73,9 +73,13 @@ class MeshConfig:
             "tetwild": fTetWild (pytetwild) on the marching-cubes surface of the grid at edge length
             h (or iis), robust to damaged surfaces but NOT conforming (interface nodes only near the
             level set), NOT periodic (no node pairs) and labelled by the field at the centroids.
-        redistance: a level-set file input is first made a first-order signed distance to its zero
-            set (`Microstructure.from_levelset(..., redistance=True)`): for fields far from a
+        redistance: True: a level-set file input is first made a first-order signed distance to its
+            zero set (`Microstructure.from_levelset(..., redistance=True)`): for fields far from a
             distance, whose nearly flat zero sets (saddles close to the threshold) fold the surfaces.
+            None (default): the field as given; when that fails with a MeshingError that redistancing
+            removes (a fold of a nearly flat level set, a surface node stalled off it), a level-set
+            file is meshed once more redistanced and metadata['redistance']['after_failure'] keeps the
+            first error. False: as given, no second try.
     """
 
     iis: float | None = None
@@ -91,7 +95,7 @@ class MeshConfig:
     max_elements: float | None = 5e6
     backend: str = "conforming"
     roll: str | tuple[int, ...] | None = None
-    redistance: bool = False
+    redistance: bool | None = None
 
     def __post_init__(self):
         for name in ("iis", "nb_el", "curv_alpha", "grad", "h_max", "h", "max_elements"):
@@ -111,8 +115,8 @@ class MeshConfig:
             raise ValueError(f"MeshConfig.roll: expected None, 'auto' or a tuple of integers, got {self.roll!r}")
         if self.roll is not None and not self.periodic:
             raise ValueError("MeshConfig.roll needs periodic=True: the faces of a plain box are the domain's")
-        if not isinstance(self.redistance, bool):
-            raise ValueError(f"MeshConfig.redistance: expected True or False, got {self.redistance!r}")
+        if self.redistance is not None and not isinstance(self.redistance, bool):
+            raise ValueError(f"MeshConfig.redistance: expected None, True or False, got {self.redistance!r}")
         if self.h_max is not None and self.iis is not None and self.h_max < self.iis:
             raise ValueError(f"MeshConfig.h_max: expected >= iis = {self.iis:g}, got {self.h_max}")
 
@@ -256,24 +260,49 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
     try:
         return _mesh_rve(source, config, box, say)
     except MeshingError as failure:
-        rolled = _retry_config(source, config, box) if failure.frame_dependent else None
-        if rolled is None:
+        retry = _retry_config(source, config, box, failure)
+        if retry is None:
             raise
-        line = (f"{failure}; meshing again with the box planes moved off the inclusions (roll='auto'; the mesh "
-                "is in the rolled frame, metadata['roll'] gives the offset; validate with --roll auto)")
+        again, key, how = retry
+        line = f"{failure}; meshing again {how}"
         say(f"[jaxmesh] retry      {line}")
-        if progress is None:  # the frame changes: say so where no progress line shows it
+        if progress is None:  # the frame or the field changes: say so where no progress line shows it
             warnings.warn(line, stacklevel=2)
         try:
-            mesh = _mesh_rve(source, rolled, box, say)
+            mesh = _mesh_rve(source, again, box, say)
         except MeshingError as second:
-            raise MeshingError(failure.stage, f"{failure.message}; meshed again with roll='auto', "
+            raise MeshingError(failure.stage, f"{failure.message}; meshed again with {key}={getattr(again, key)!r}, "
                                f"it failed too: {second}", failure.inclusion) from failure
-        mesh.metadata["roll"]["after_failure"] = str(failure)
+        mesh.metadata.setdefault(key, {})["after_failure"] = str(failure)
         return mesh
 
 
-def _retry_config(source, config: MeshConfig, box) -> MeshConfig | None:
+def _retry_config(source, config: MeshConfig, box, failure: MeshingError) -> tuple[MeshConfig, str, str] | None:
+    """The second try after a MeshingError: (configuration, the field it changes, how, for the
+    progress line), or None when no second try can remove the failure."""
+    if failure.frame_dependent:
+        rolled = _rolled_retry_config(source, config, box)
+        if rolled is not None:
+            return rolled, "roll", ("with the box planes moved off the inclusions (roll='auto'; the mesh is in the "
+                                    "rolled frame, metadata['roll'] gives the offset; validate with --roll auto)")
+    if failure.redistance_helps and config.redistance is None and _is_levelset_file(source, config, box):
+        return dataclasses.replace(config, redistance=True), "redistance", (
+            "with the field made a first-order signed distance to its zero set (redistance=True: the same "
+            "signs at every sample, the interface moved within its grid cells; validate with --redistance)")
+    return None
+
+
+def _is_levelset_file(source, config: MeshConfig, box) -> bool:
+    """Whether source is an input file read as a level set (the inputs that redistance changes)."""
+    from .io._read import load_input
+
+    if not isinstance(source, (str, Path)):
+        return False
+    ms = load_input(source, box=box, periodic=config.periodic)
+    return all(inc.description.get("kind") == "levelset" for inc in ms.inclusions)
+
+
+def _rolled_retry_config(source, config: MeshConfig, box) -> MeshConfig | None:
     """The configuration of a second try after a MeshingError: roll='auto' when the input is a periodic
     file, or a periodic Microstructure that can roll, meshed in its own frame (roll None; an
     explicit roll, zeros included, is kept) and rolling moves its box planes farther from the
@@ -288,7 +317,7 @@ def _retry_config(source, config: MeshConfig, box) -> MeshConfig | None:
             return None
         ms = source
     elif isinstance(source, (str, Path)):
-        ms = load_input(source, box=box, periodic=True, redistance=config.redistance)
+        ms = load_input(source, box=box, periodic=True, redistance=bool(config.redistance))
     else:
         return None
     clear, best = box_plane_clearances(ms)
@@ -310,7 +339,7 @@ def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
 
     t = time.perf_counter()
     ms, roll = _as_microstructure(source, box=box, periodic=config.periodic, roll=config.roll,
-                                  redistance=config.redistance)
+                                  redistance=bool(config.redistance))
     config = config.for_box(ms.box)
     if config.backend == "conforming" and ms.periodic != config.periodic:
         raise ValueError(f"MeshConfig.periodic is {config.periodic} but the microstructure has periodic={ms.periodic} "

@@ -213,7 +213,7 @@ def refuse_nodes_off_the_level_set(points: np.ndarray, phi_fn, box, inclusion_id
                        f"{where}: the interpolated field has a ripple there finer than the grid (e.g. a tip sharper "
                        "than a grid step of a field that is not a distance), on which the projection stalls; hint: "
                        "--redistance (MeshConfig(redistance=True)) makes the field a signed distance first, or "
-                       "sample the field finer", inclusion_id, frame_dependent=False)
+                       "sample the field finer", inclusion_id, frame_dependent=False, redistance_helps=True)
 
 
 def level_set_gradient(phi_fn, points: np.ndarray) -> np.ndarray:

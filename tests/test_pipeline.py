@@ -313,7 +313,8 @@ def test_a_tip_sharper_than_the_grid_is_refused_by_place_and_meshed_redistanced(
     """An algebraic (not distance) prolate ellipsoid field, aspect 6 on 32^3: its tips (radius of
     curvature a quarter of a grid step) leave the interpolated field a ripple just inside each tip,
     where the projection of the tip node stalls at |phi| ~ 3e-3. That is a clear error naming the
-    place and --redistance (no invalid mesh), and with redistance=True the mesh is valid."""
+    place and --redistance (no invalid mesh); read from a file with the default redistance=None, the
+    field is meshed once more redistanced, and that mesh is valid."""
     n = 32
     x = np.arange(n) / n
     t = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1) - 0.5
@@ -323,5 +324,45 @@ def test_a_tip_sharper_than_the_grid_is_refused_by_place_and_meshed_redistanced(
     with pytest.raises(MeshingError, match=r"stay off the level set .* near x = \((0.2|0.7)\d*, 0.5, 0.5\).*--redistance") as err:
         mesh_rve(Microstructure.from_levelset(phi), MeshConfig(seed=0))
     assert err.value.stage == "surfaces" and err.value.inclusion == 1 and not err.value.frame_dependent
-    mesh = mesh_rve(tmp_path / "needle.npy", MeshConfig(seed=0, redistance=True))
+    assert err.value.redistance_helps
+    with pytest.warns(UserWarning, match=r"stay off the level set .*meshing again with the field made a first-order"):
+        mesh = mesh_rve(tmp_path / "needle.npy", MeshConfig(seed=0))
     assert mesh.metadata["validation"]["ok"], mesh.metadata["validation"]
+    assert mesh.metadata["parameters"]["redistance"] is True
+    assert "stay off the level set" in mesh.metadata["redistance"]["after_failure"]
+
+
+def test_a_failure_that_redistancing_removes_is_meshed_again_redistanced_only_for_level_set_files(
+        tmp_path, monkeypatch):
+    """The redistanced retry: a level-set file with redistance=None is meshed once more with
+    redistance=True; redistance=False, a labelled image and a Microstructure in memory raise the first
+    error; a second failure names both."""
+    from jaxmesh import _pipeline
+
+    calls = []
+
+    def fails_unless_redistanced(ms, config, stage, t):
+        calls.append(config.redistance)
+        raise MeshingError("surfaces", f"nearly flat (redistance {config.redistance})", frame_dependent=False,
+                           redistance_helps=True)
+
+    monkeypatch.setattr(_pipeline, "_mesh_3d", fails_unless_redistanced)
+    x = np.arange(16) / 16
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1)
+    phi = np.linalg.norm(X - 0.5, axis=-1) - 0.25
+    np.save(tmp_path / "phi.npy", phi)
+    np.save(tmp_path / "labels.npy", (phi < 0).astype(np.uint8))
+    lines = []
+    with pytest.raises(MeshingError, match=r"redistance None\); meshed again with redistance=True, it failed too: "
+                                           r".*redistance True"):
+        mesh_rve(tmp_path / "phi.npy", MeshConfig(h=0.1), progress=lines.append)
+    assert calls == [None, True] and any("retry" in line and "--redistance" in line for line in lines)
+    for source, config in ((tmp_path / "phi.npy", MeshConfig(h=0.1, redistance=False)),
+                           (tmp_path / "labels.npy", MeshConfig(h=0.1)),
+                           (Microstructure.from_levelset(phi), MeshConfig(h=0.1))):
+        calls.clear()
+        with pytest.raises(MeshingError, match=r"^stage 'surfaces': nearly flat \(redistance (None|False)\)$"):
+            mesh_rve(source, config)
+        assert calls == [config.redistance]
+    with pytest.raises(ValueError, match="MeshConfig.redistance: expected None, True or False"):
+        MeshConfig(redistance="yes")
