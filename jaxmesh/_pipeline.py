@@ -73,13 +73,14 @@ class MeshConfig:
             "tetwild": fTetWild (pytetwild) on the marching-cubes surface of the grid at edge length
             h (or iis), robust to damaged surfaces but NOT conforming (interface nodes only near the
             level set), NOT periodic (no node pairs) and labelled by the field at the centroids.
-        redistance: True: a level-set file input is first made a first-order signed distance to its
-            zero set (`Microstructure.from_levelset(..., redistance=True)`): for fields far from a
-            distance, whose nearly flat zero sets (saddles close to the threshold) fold the surfaces.
-            None (default): the field as given; when that fails with a MeshingError that redistancing
+        redistance: True: a level-set input (a file, or a Microstructure from from_levelset) is first
+            made a first-order signed distance to its zero set (`Microstructure.redistanced`): for
+            fields far from a distance, whose nearly flat zero sets (saddles close to the threshold)
+            fold the surfaces; labelled images and analytic inclusions are distances already. None
+            (default): the field as given; when that fails with a MeshingError that redistancing
             removes (a fold of a nearly flat level set, a surface node stalled off it), a level-set
-            file is meshed once more redistanced and metadata['redistance']['after_failure'] keeps the
-            first error. False: as given, no second try.
+            input is meshed once more redistanced and metadata['redistance']['after_failure'] keeps
+            the first error. False: as given, no second try.
     """
 
     iis: float | None = None
@@ -161,10 +162,8 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redis
         if roll is not None and not source.can_roll:
             raise ValueError("MeshConfig.roll needs an input file or a periodic Microstructure built by "
                              "from_levelset, from_labels or from_functions; hint: pass the path")
-        if redistance:
-            raise ValueError("MeshConfig.redistance needs an input file (the field is redistanced as it is read); "
-                             "hint: Microstructure.from_levelset(phi, redistance=True)")
-        ms, reread = source, source.rolled
+        ms = source.redistanced() if redistance and source.can_redistance else source
+        reread = ms.rolled
     elif isinstance(source, (str, Path)):
         ms = load_input(source, box=box, periodic=periodic, redistance=redistance)
         reread = lambda samples: load_input(source, box=box, periodic=periodic, roll=samples,  # noqa: E731
@@ -285,21 +284,21 @@ def _retry_config(source, config: MeshConfig, box, failure: MeshingError) -> tup
         if rolled is not None:
             return rolled, "roll", ("with the box planes moved off the inclusions (roll='auto'; the mesh is in the "
                                     "rolled frame, metadata['roll'] gives the offset; validate with --roll auto)")
-    if failure.redistance_helps and config.redistance is None and _is_levelset_file(source, config, box):
+    if failure.redistance_helps and config.redistance is None and _can_redistance(source, config, box):
         return dataclasses.replace(config, redistance=True), "redistance", (
             "with the field made a first-order signed distance to its zero set (redistance=True: the same "
             "signs at every sample, the interface moved within its grid cells; validate with --redistance)")
     return None
 
 
-def _is_levelset_file(source, config: MeshConfig, box) -> bool:
-    """Whether source is an input file read as a level set (the inputs that redistance changes)."""
+def _can_redistance(source, config: MeshConfig, box) -> bool:
+    """Whether redistance changes source: a level set as given, in a file or from from_levelset."""
+    from .geometry._microstructure import Microstructure
     from .io._read import load_input
 
-    if not isinstance(source, (str, Path)):
-        return False
-    ms = load_input(source, box=box, periodic=config.periodic)
-    return all(inc.description.get("kind") == "levelset" for inc in ms.inclusions)
+    if isinstance(source, Microstructure):
+        return source.can_redistance
+    return isinstance(source, (str, Path)) and load_input(source, box=box, periodic=config.periodic).can_redistance
 
 
 def _rolled_retry_config(source, config: MeshConfig, box) -> MeshConfig | None:

@@ -625,10 +625,16 @@ def test_redistance_makes_a_field_a_distance_with_the_same_signs(periodic):
     assert np.allclose(slopes(ms), 1.0, atol=0.1)
     raw = slopes(Microstructure.from_levelset(field, periodic=periodic))
     assert raw.max() > 2 * raw.min()  # as given: one scale for the whole field
-    with pytest.raises(ValueError, match="MeshConfig.redistance needs an input file"):
-        from jaxmesh._pipeline import _as_microstructure
+    from jaxmesh._pipeline import _as_microstructure
 
-        _as_microstructure(ms, redistance=True)
+    given = Microstructure.from_levelset(field, periodic=periodic)
+    meshed, _ = _as_microstructure(given, periodic=periodic, redistance=True)  # MeshConfig(redistance=True)
+    assert given.can_redistance and not ms.can_redistance and not meshed.can_redistance
+    assert meshed.inclusions[0].description["redistanced"] is True
+    assert np.array_equal(meshed.phi(on), ms.phi(on))
+    assert _as_microstructure(ms, periodic=periodic, redistance=True)[0] is ms  # redistanced already
+    with pytest.raises(ValueError, match="redistanced needs a level set built by from_levelset without"):
+        ms.redistanced()
 
 
 def test_rolled_rebuilds_a_grid_microstructure_in_the_shifted_frame():

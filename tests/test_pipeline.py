@@ -10,6 +10,7 @@ from jaxmesh import (
     Microstructure,
     load_input,
     mesh_rve,
+    microstructure_from_specs,
     quality_report,
     random_inclusions,
     sample_levelset,
@@ -313,8 +314,8 @@ def test_a_tip_sharper_than_the_grid_is_refused_by_place_and_meshed_redistanced(
     """An algebraic (not distance) prolate ellipsoid field, aspect 6 on 32^3: its tips (radius of
     curvature a quarter of a grid step) leave the interpolated field a ripple just inside each tip,
     where the projection of the tip node stalls at |phi| ~ 3e-3. That is a clear error naming the
-    place and --redistance (no invalid mesh); read from a file with the default redistance=None, the
-    field is meshed once more redistanced, and that mesh is valid."""
+    place and --redistance (no invalid mesh); with the default redistance=None, the file's field is
+    meshed once more redistanced, and that mesh is valid."""
     n = 32
     x = np.arange(n) / n
     t = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1) - 0.5
@@ -322,7 +323,7 @@ def test_a_tip_sharper_than_the_grid_is_refused_by_place_and_meshed_redistanced(
     phi = 0.05 * np.sqrt(((t / np.array([0.3, 0.05, 0.05])) ** 2).sum(-1)) - 0.05
     np.save(tmp_path / "needle.npy", phi)
     with pytest.raises(MeshingError, match=r"stay off the level set .* near x = \((0.2|0.7)\d*, 0.5, 0.5\).*--redistance") as err:
-        mesh_rve(Microstructure.from_levelset(phi), MeshConfig(seed=0))
+        mesh_rve(Microstructure.from_levelset(phi), MeshConfig(seed=0, redistance=False))
     assert err.value.stage == "surfaces" and err.value.inclusion == 1 and not err.value.frame_dependent
     assert err.value.redistance_helps
     with pytest.warns(UserWarning, match=r"stay off the level set .*meshing again with the field made a first-order"):
@@ -334,9 +335,9 @@ def test_a_tip_sharper_than_the_grid_is_refused_by_place_and_meshed_redistanced(
 
 def test_a_failure_that_redistancing_removes_is_meshed_again_redistanced_only_for_level_set_files(
         tmp_path, monkeypatch):
-    """The redistanced retry: a level-set file with redistance=None is meshed once more with
-    redistance=True; redistance=False, a labelled image and a Microstructure in memory raise the first
-    error; a second failure names both."""
+    """The redistanced retry: a level set (a file, or from_levelset in memory) with redistance=None is
+    meshed once more with redistance=True; redistance=False, a labelled image and analytic inclusions
+    raise the first error; a second failure names both."""
     from jaxmesh import _pipeline
 
     calls = []
@@ -352,14 +353,17 @@ def test_a_failure_that_redistancing_removes_is_meshed_again_redistanced_only_fo
     phi = np.linalg.norm(X - 0.5, axis=-1) - 0.25
     np.save(tmp_path / "phi.npy", phi)
     np.save(tmp_path / "labels.npy", (phi < 0).astype(np.uint8))
-    lines = []
-    with pytest.raises(MeshingError, match=r"redistance None\); meshed again with redistance=True, it failed too: "
-                                           r".*redistance True"):
-        mesh_rve(tmp_path / "phi.npy", MeshConfig(h=0.1), progress=lines.append)
-    assert calls == [None, True] and any("retry" in line and "--redistance" in line for line in lines)
+    for source in (tmp_path / "phi.npy", Microstructure.from_levelset(phi)):
+        calls.clear()
+        lines = []
+        with pytest.raises(MeshingError, match=r"redistance None\); meshed again with redistance=True, it failed "
+                                               r"too: .*redistance True"):
+            mesh_rve(source, MeshConfig(h=0.1), progress=lines.append)
+        assert calls == [None, True] and any("retry" in line and "--redistance" in line for line in lines)
+    spec = InclusionSpec("sphere", np.array([0.5, 0.5, 0.5]), np.full(3, 0.25), np.eye(3))
     for source, config in ((tmp_path / "phi.npy", MeshConfig(h=0.1, redistance=False)),
                            (tmp_path / "labels.npy", MeshConfig(h=0.1)),
-                           (Microstructure.from_levelset(phi), MeshConfig(h=0.1))):
+                           (microstructure_from_specs([spec], (1.0, 1.0, 1.0), (16,) * 3), MeshConfig(h=0.1))):
         calls.clear()
         with pytest.raises(MeshingError, match=r"^stage 'surfaces': nearly flat \(redistance (None|False)\)$"):
             mesh_rve(source, config)

@@ -247,6 +247,7 @@ class Microstructure:
                                  f"got {np.shape(a)}.")
         self._stacked = None
         self._rebuild = None  # periodic: samples -> the same Microstructure in the rolled frame
+        self._redistance = None  # from_levelset as given: () -> the same field made a first-order distance
 
     def rolled(self, samples) -> Microstructure:
         """The same periodic microstructure in the frame whose origin is sample samples[a] along each axis a
@@ -269,6 +270,23 @@ class Microstructure:
     def can_roll(self) -> bool:
         """Whether `rolled` can rebuild this microstructure in another frame."""
         return self._rebuild is not None
+
+    def redistanced(self) -> Microstructure:
+        """This from_levelset microstructure rebuilt from its samples made a first-order signed distance to
+        their zero set (`from_levelset(..., redistance=True)`, the other arguments the same).
+
+        Example:
+            >>> ms = Microstructure.from_levelset(phi).redistanced()
+        """
+        if self._redistance is None:
+            raise ValueError("Microstructure.redistanced needs a level set built by from_levelset without "
+                             "redistance (labelled images and analytic inclusions are distances already)")
+        return self._redistance()
+
+    @property
+    def can_redistance(self) -> bool:
+        """Whether `redistanced` applies: a from_levelset field not redistanced yet."""
+        return self._redistance is not None
 
     def __repr__(self):
         return (f"Microstructure(dim={self.dim}, box={self.box}, periodic={self.periodic}, "
@@ -531,10 +549,13 @@ class Microstructure:
                         for _ in range(n)]
         ms = cls._from_windows(box, periodic, order, labels, (starts, lengths), windows, fields, r,
                                descriptions, "from_levelset", check_gaps, check_necks)
+        grid = np.array(values, copy=True)
+        build = functools.partial(cls.from_levelset, box=box, periodic=periodic, order=order, reach=reach,
+                                  check_gaps=check_gaps, check_necks=check_necks)
         if periodic:
-            ms._rebuild = functools.partial(_from_rolled_grid, functools.partial(
-                cls.from_levelset, box=box, periodic=True, order=order, reach=reach, check_gaps=check_gaps,
-                check_necks=check_necks, redistance=redistance), np.array(values, copy=True))
+            ms._rebuild = functools.partial(_from_rolled_grid, functools.partial(build, redistance=redistance), grid)
+        if not redistance:
+            ms._redistance = functools.partial(build, grid, redistance=True)
         return ms
 
     @classmethod
