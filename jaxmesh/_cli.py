@@ -233,8 +233,8 @@ _REDISTANCE_HELP = ("level-set inputs: first make the field a first-order signed
                      "signs at every node, the interface moved within its cells): for fields far from a distance, "
                      "e.g. a thresholded random field, whose nearly flat saddles fold the surfaces. Default: the "
                      "field as given, and once more redistanced when a fold or a node stalled off the level set "
-                     "stops the run (the report's metadata.redistance.after_failure keeps the first error); "
-                     "--no-redistance: never")
+                     "stops the run, or any failure when the field is far from a distance (the report's "
+                     "metadata.redistance.after_failure keeps the first error); --no-redistance: never")
 
 
 def _cmd_mesh(args: argparse.Namespace) -> int:

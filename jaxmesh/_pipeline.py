@@ -78,9 +78,11 @@ class MeshConfig:
             fields far from a distance, whose nearly flat zero sets (saddles close to the threshold)
             fold the surfaces; labelled images and analytic inclusions are distances already. None
             (default): the field as given; when that fails with a MeshingError that redistancing
-            removes (a fold of a nearly flat level set, a surface node stalled off it), a level-set
-            input is meshed once more redistanced and metadata['redistance']['after_failure'] keeps
-            the first error. False: as given, no second try.
+            removes (a fold of a nearly flat level set, a surface node stalled off it), or with any
+            MeshingError while the field is far from a distance (its inclusions' slope_spread above
+            1.5), a level-set input is meshed once more redistanced and
+            metadata['redistance']['after_failure'] keeps the first error. False: as given, no
+            second try.
     """
 
     iis: float | None = None
@@ -256,49 +258,64 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
     """
     config = MeshConfig() if config is None else config
     say = progress or (lambda line: None)
-    try:
-        return _mesh_rve(source, config, box, say)
-    except MeshingError as failure:
-        retry = _retry_config(source, config, box, failure)
-        if retry is None:
-            raise
-        again, key, how = retry
-        line = f"{failure}; meshing again {how}"
-        say(f"[jaxmesh] retry      {line}")
-        if progress is None:  # the frame or the field changes: say so where no progress line shows it
-            warnings.warn(line, stacklevel=2)
+    retries = []  # (the MeshConfig field changed, the failure that made it change)
+    while True:
         try:
-            mesh = _mesh_rve(source, again, box, say)
-        except MeshingError as second:
-            raise MeshingError(failure.stage, f"{failure.message}; meshed again with {key}={getattr(again, key)!r}, "
-                               f"it failed too: {second}", failure.inclusion) from failure
+            mesh = _mesh_rve(source, config, box, say)
+            break
+        except MeshingError as failure:
+            retry = _retry_config(source, config, box, failure)
+            if retry is None and not retries:
+                raise
+            if retry is None:
+                first = retries[0][1]
+                tried = ", then ".join(f"with {key}={getattr(config, key)!r}" for key, _ in retries)
+                raise MeshingError(first.stage, f"{first.message}; meshed again {tried}, it failed too: {failure}",
+                                   first.inclusion) from first
+            config, key, how = retry
+            retries.append((key, failure))
+            line = f"{failure}; meshing again {how}"
+            say(f"[jaxmesh] retry      {line}")
+            if progress is None:  # the frame or the field changes: say so where no progress line shows it
+                warnings.warn(line, stacklevel=2)
+    for key, failure in retries:
         mesh.metadata.setdefault(key, {})["after_failure"] = str(failure)
-        return mesh
+    return mesh
+
+
+_DISTANCE_SPREAD = 1.5  # a level set's slope_spread above this: far from even a first-order distance
 
 
 def _retry_config(source, config: MeshConfig, box, failure: MeshingError) -> tuple[MeshConfig, str, str] | None:
-    """The second try after a MeshingError: (configuration, the field it changes, how, for the
-    progress line), or None when no second try can remove the failure."""
+    """The next try after a MeshingError: (its configuration, the MeshConfig field it changes, what it
+    does, for the progress line), or None when no other try can remove the failure. A level set as
+    given is redistanced first when the failure is one that redistancing removes or the field is far
+    from a distance (its surfaces fold and its recovery stalls where the slope varies); then a
+    failure that depends on the frame is meshed rolled."""
+    if config.redistance is None:
+        ms = _level_set_as_given(source, config, box)
+        if ms is not None and (failure.redistance_helps or
+                               ms.inclusions[0].description["slope_spread"] > _DISTANCE_SPREAD):
+            return dataclasses.replace(config, redistance=True), "redistance", (
+                "with the field made a first-order signed distance to its zero set (redistance=True: the same "
+                "signs at every sample, the interface moved within its grid cells; validate with --redistance)")
     if failure.frame_dependent:
         rolled = _rolled_retry_config(source, config, box)
         if rolled is not None:
             return rolled, "roll", ("with the box planes moved off the inclusions (roll='auto'; the mesh is in the "
                                     "rolled frame, metadata['roll'] gives the offset; validate with --roll auto)")
-    if failure.redistance_helps and config.redistance is None and _can_redistance(source, config, box):
-        return dataclasses.replace(config, redistance=True), "redistance", (
-            "with the field made a first-order signed distance to its zero set (redistance=True: the same "
-            "signs at every sample, the interface moved within its grid cells; validate with --redistance)")
     return None
 
 
-def _can_redistance(source, config: MeshConfig, box) -> bool:
-    """Whether redistance changes source: a level set as given, in a file or from from_levelset."""
+def _level_set_as_given(source, config: MeshConfig, box):
+    """source's Microstructure when redistance would change it (a level set as given, in a file or
+    from from_levelset), else None."""
     from .geometry._microstructure import Microstructure
     from .io._read import load_input
 
-    if isinstance(source, Microstructure):
-        return source.can_redistance
-    return isinstance(source, (str, Path)) and load_input(source, box=box, periodic=config.periodic).can_redistance
+    if isinstance(source, (str, Path)):
+        source = load_input(source, box=box, periodic=config.periodic)
+    return source if isinstance(source, Microstructure) and source.can_redistance else None
 
 
 def _rolled_retry_config(source, config: MeshConfig, box) -> MeshConfig | None:

@@ -637,6 +637,33 @@ def test_redistance_makes_a_field_a_distance_with_the_same_signs(periodic):
         ms.redistanced()
 
 
+def test_slope_spread_tells_distances_from_other_fields():
+    """from_levelset's slope_spread (gradient_scale): about 1 for a sampled distance, below 1.5 for a
+    first-order one (redistanced, or the generator's excursion sets), above 1.5 for a field whose slope
+    varies along its zero set and above 2 for a thresholded Gaussian random field: mesh_rve redistances
+    a level set above 1.5 after a failure."""
+    from jaxmesh._generate import excursion_set
+    from jaxmesh._pipeline import _DISTANCE_SPREAD
+
+    def spread(ms):
+        return ms.inclusions[0].description["slope_spread"]
+
+    n, R = 32, 0.3
+    x = np.stack(np.meshgrid(*[np.arange(n) / n] * 3, indexing="ij"), axis=-1)
+    r = np.linalg.norm(x - 0.5, axis=-1)
+    assert spread(Microstructure.from_levelset(r - R)) < 1.05
+    varying = Microstructure.from_levelset((r**2 - R**2) * (1 + 0.8 * np.sin(2 * np.pi * x[..., 0])))
+    assert spread(varying) > 2 * _DISTANCE_SPREAD and spread(varying.redistanced()) < _DISTANCE_SPREAD
+    rng = np.random.default_rng(5)
+    k2 = sum(k**2 for k in np.meshgrid(*[np.fft.fftfreq(n, 1 / n)] * 3, indexing="ij"))
+    field = np.fft.ifftn(np.fft.fftn(rng.normal(size=(n,) * 3)) * np.exp(-0.5 * k2 * (2 * np.pi * 0.12) ** 2)).real
+    raw = Microstructure.from_levelset(field - np.quantile(field, 0.3), check_necks=False)
+    assert spread(raw) > 2 and spread(raw.redistanced()) < _DISTANCE_SPREAD
+    generated = Microstructure.from_levelset(
+        excursion_set((1.0,) * 3, (n,) * 3, correlation_length=0.12, volume_fraction=0.3, seed=5), check_necks=False)
+    assert spread(generated) < _DISTANCE_SPREAD
+
+
 def test_rolled_rebuilds_a_grid_microstructure_in_the_shifted_frame():
     """rolled(k): the grid read so that sample k lies at x = 0, so the field at x equals the original's at
     x + k h (mod L), for level sets, labelled images and analytic inclusions (whose description's centre

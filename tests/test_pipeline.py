@@ -336,8 +336,10 @@ def test_a_tip_sharper_than_the_grid_is_refused_by_place_and_meshed_redistanced(
 def test_a_failure_that_redistancing_removes_is_meshed_again_redistanced_only_for_level_set_files(
         tmp_path, monkeypatch):
     """The redistanced retry: a level set (a file, or from_levelset in memory) with redistance=None is
-    meshed once more with redistance=True; redistance=False, a labelled image and analytic inclusions
-    raise the first error; a second failure names both."""
+    meshed once more with redistance=True after a failure that redistancing removes, or after any
+    failure when the field is far from a distance (then rolled after a failure in that frame);
+    redistance=False, a labelled image and analytic inclusions raise the first error; a failure of
+    the last try names every try."""
     from jaxmesh import _pipeline
 
     calls = []
@@ -368,5 +370,23 @@ def test_a_failure_that_redistancing_removes_is_meshed_again_redistanced_only_fo
         with pytest.raises(MeshingError, match=r"^stage 'surfaces': nearly flat \(redistance (None|False)\)$"):
             mesh_rve(source, config)
         assert calls == [config.redistance]
+
+    def fails_in_every_frame(ms, config, stage, t):
+        calls.append((config.redistance, config.roll))
+        raise MeshingError("volume", f"recovery stopped (redistance {config.redistance}, roll {config.roll})")
+
+    monkeypatch.setattr(_pipeline, "_mesh_3d", fails_in_every_frame)
+    t = X - np.array([0.1, 0.5, 0.5])
+    r = np.linalg.norm(t - np.round(t), axis=-1)  # a sphere across x = 0 whose field's slope varies
+    np.save(tmp_path / "varying.npy", (r**2 - 0.25**2) * (1 + 0.8 * np.sin(2 * np.pi * X[..., 1])))
+    calls.clear()
+    with pytest.raises(MeshingError, match=r"redistance None, roll None\); meshed again with redistance=True, then "
+                                           r"with roll='auto', it failed too: .*redistance True, roll auto"):
+        mesh_rve(tmp_path / "varying.npy", MeshConfig(h=0.1))
+    assert calls == [(None, None), (True, None), (True, "auto")]  # far from a distance: redistanced first
+    calls.clear()
+    with pytest.raises(MeshingError, match=r"^stage 'volume': recovery stopped \(redistance None, roll None\)$"):
+        mesh_rve(tmp_path / "phi.npy", MeshConfig(h=0.1))  # a distance: not redistanced (nor rolled: centred)
+    assert calls == [(None, None)]
     with pytest.raises(ValueError, match="MeshConfig.redistance: expected None, True or False"):
         MeshConfig(redistance="yes")

@@ -490,7 +490,8 @@ class Microstructure:
 
         Returns:
             The Microstructure; each inclusion's description holds n_samples and thickness (steps),
-            and neck_steps (the narrowest neck's width) when it has a neck below one step.
+            neck_steps (the narrowest neck's width) when it has a neck below one step, and the field's
+            scale and slope_spread (`gradient_scale`: how far the field is from a distance).
         """
         v = check_field(values, "from_levelset")
         shape = v.shape
@@ -527,7 +528,7 @@ class Microstructure:
                     )
         if redistance:
             v = comp.first_order_distance(v, mask, spacing, periodic)
-        scale = gradient_scale(v, mask, spacing)
+        scale, spread = gradient_scale(v, mask, spacing)
         scale = scale if abs(scale - 1.0) > 0.25 else 1.0  # distance-like fields are kept as they are
         v = v / scale
         labels, n = comp.label_components(mask, periodic)
@@ -545,8 +546,8 @@ class Microstructure:
             other = (comp.take(labels, idx) > 0) & ~own
             fields.append(comp.levelset_window_field(comp.take(v, idx), own, near_w, c, spacing, win.full, other))
             windows.append(win)
-        descriptions = [{"kind": "levelset", "scale": float(scale), **({"redistanced": True} if redistance else {})}
-                        for _ in range(n)]
+        descriptions = [{"kind": "levelset", "scale": float(scale), "slope_spread": spread,
+                         **({"redistanced": True} if redistance else {})} for _ in range(n)]
         ms = cls._from_windows(box, periodic, order, labels, (starts, lengths), windows, fields, r,
                                descriptions, "from_levelset", check_gaps, check_necks)
         grid = np.array(values, copy=True)
