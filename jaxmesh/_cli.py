@@ -305,10 +305,40 @@ def _cmd_validate(args: argparse.Namespace) -> int:
                                    roll=_roll_arg(args.roll), redistance=args.redistance)
     report = validate(mesh, ms)
     print(report.summary())
+    if ms is not None and not report.ok and set(report.failed) <= _GEOMETRY_CHECKS:
+        hint = _another_reading(mesh, args, ms)
+        if hint:
+            print(f"    hint: {hint}")
     _progress("validate", ("valid" if report.ok else "INVALID") + f": {args.mesh}", t0)
     if args.report:
         _write_json_atomic(args.report, report.to_dict())
     return 0 if report.ok else 1
+
+
+_GEOMETRY_CHECKS = {"interface", "labels", "connectivity"}  # the checks that read the input
+
+
+def _another_reading(mesh, args: argparse.Namespace, ms) -> str:
+    """When a mesh fails only the checks against its input: the options (--redistance, --roll auto) under
+    which the input reads as the mesh follows it, as `jaxmesh mesh` reads it after a failed first try."""
+    from ._pipeline import _as_microstructure
+    from ._validate import validate
+
+    options = []
+    if not args.redistance and ms.can_redistance:
+        options.append(["--redistance"])
+    if args.roll is None and ms.can_roll:
+        options.append(["--roll", "auto"])
+    if len(options) == 2:
+        options.append(options[0] + options[1])
+    for flags in options:
+        other, _ = _as_microstructure(args.geometry, box=_box_arg(args.box) or tuple(mesh.box), periodic=mesh.periodic,
+                                      roll="auto" if "--roll" in flags else _roll_arg(args.roll),
+                                      redistance=args.redistance or "--redistance" in flags)
+        if validate(mesh, other).ok:
+            return (f"valid with {' '.join(flags)}: the input read so is what the mesh follows (jaxmesh mesh "
+                    "reads it so after a failed first try; its report's metadata says which)")
+    return ""
 
 
 # ---------------------------------------------------------------------------------------------

@@ -230,12 +230,15 @@ def test_mesh_and_validate_with_roll_auto(tmp_path, capsys):
     assert main(["mesh", str(phi), "-o", str(out), "--h", "0.1", "--roll", "auto"]) == 0
     assert re.search(r"rolled by \(\d+, \d+, \d+\) samples", capsys.readouterr().out)
     assert main(["validate", str(out), "--geometry", str(phi), "--roll", "auto"]) == 0
+    capsys.readouterr()
     assert main(["validate", str(out), "--geometry", str(phi)]) == 1
+    assert "hint: valid with --roll auto: the input read so" in capsys.readouterr().out
 
 
 def test_mesh_and_validate_with_redistance(tmp_path, capsys):
     """--redistance meshes a field far from a distance as its first-order distance: valid, recorded in
-    the report's parameters, and `validate --redistance` reads the geometry the same way."""
+    the report's parameters, and `validate --redistance` reads the geometry the same way; without it
+    the interface is off the field as given, and validate says which option reads the input so."""
     n, radius = 24, 0.3
     x = np.stack(np.meshgrid(*[np.arange(n) / n] * 3, indexing="ij"), axis=-1)
     r = np.linalg.norm(x - 0.5, axis=-1)
@@ -247,3 +250,6 @@ def test_mesh_and_validate_with_redistance(tmp_path, capsys):
     assert data["metadata"]["parameters"]["redistance"] is True
     capsys.readouterr()
     assert main(["validate", str(out), "--geometry", str(phi), "--redistance"]) == 0
+    capsys.readouterr()
+    assert main(["validate", str(out), "--geometry", str(phi)]) == 1
+    assert "hint: valid with --redistance: the input read so is what the mesh follows" in capsys.readouterr().out
