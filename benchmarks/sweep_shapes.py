@@ -4,8 +4,8 @@ Builds each input in OUT_DIR (tori, rounded cubes, finite cylinders, a labelled 
 non-cubic box, a sphere near its images, spheres on a box corner / edge, Gaussian excursion
 sets from `jaxmesh generate --kind grf`, percolating inclusions: endless fibres, a gyroid
 network, percolating excursion sets; and fields written as users write them: random spheres
-placed with no box clearance, algebraic ellipsoid fields that are not distances), runs `jaxmesh mesh`
-on it and prints one line per case. With --no-periodic the same fields are meshed as plain boxes
+placed with no box clearance, algebraic ellipsoid fields and thresholded random fields that are not
+distances), runs `jaxmesh mesh` on it and prints one line per case. With --no-periodic the same fields are meshed as plain boxes
 (`jaxmesh mesh --no-periodic`: the box cuts the inclusions, each piece one inclusion).
     .venv/bin/python benchmarks/sweep_shapes.py [OUT_DIR] [--only NAME ...] [--build-only] [--no-periodic]
 """
@@ -203,6 +203,20 @@ def _needle(options: list[str]):
     return case
 
 
+def _numpy_excursion(seed: int, options: list[str], n: int = 40, length: float = 0.12, fraction: float = 0.25):
+    """A Gaussian random field thresholded as users write it (NumPy FFT, no redistancing): not a distance."""
+    def case(out: Path):
+        rng = np.random.default_rng(seed)
+        k = np.fft.fftfreq(n) * n
+        k2 = sum(a**2 for a in np.meshgrid(k, k, k, indexing="ij"))
+        noise = np.fft.fftn(rng.standard_normal((n,) * 3))
+        field = np.real(np.fft.ifftn(noise * np.exp(-0.25 * k2 * (2 * np.pi * length) ** 2)))
+        field /= field.std()
+        np.save(p := out / f"numpy_grf_s{seed}.npy", field - np.quantile(field, fraction))
+        return p, options, f"NumPy Gaussian field below its {fraction:.0%} quantile, l {length}, {n}^3 seed {seed}"
+    return case
+
+
 def _numpy_spheres(seed: int, count: int, n: int):
     """Random spheres placed here (not by `jaxmesh generate`): nothing keeps them off the box planes."""
     def case(out: Path):
@@ -335,6 +349,10 @@ CASES = {
     "needle": _needle([]),  # as given, then redistanced after the stalled-node error
     "needle_as_given": _needle(["--no-redistance"]),
     "needle_redistanced": _needle(["--redistance"]),
+    "numpy_grf_s301": _numpy_excursion(301, []),
+    "numpy_grf_s301_as_given": _numpy_excursion(301, ["--no-redistance"]),
+    "numpy_grf_s302": _numpy_excursion(302, []),
+    "numpy_grf_s303": _numpy_excursion(303, []),
     "numpy_spheres_s1": _numpy_spheres(1, 25, 40),
     "numpy_spheres_s2": _numpy_spheres(2, 40, 48),
     "algebraic_ellipsoids": case_algebraic_ellipsoids,
