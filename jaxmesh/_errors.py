@@ -7,8 +7,8 @@ class MeshingError(RuntimeError):
     Carries the stage name and, where it applies, the inclusion id, so that a user
     can tell which part of a large RVE caused the failure. frame_dependent=False marks a
     cause that moving the box planes cannot remove (mesh_rve then skips its rolled retry);
-    redistance_helps=True one that a first-order signed distance of the field removes (a level set far
-    from a distance: mesh_rve meshes a level-set file once more redistanced).
+    redistance_helps=True one that a first-order signed distance of the field removes (mesh_rve then
+    meshes a level set as given once more redistanced).
     """
 
     def __init__(self, stage: str, message: str, inclusion: int | None = None, *, frame_dependent: bool = True,

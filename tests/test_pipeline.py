@@ -333,7 +333,7 @@ def test_a_tip_sharper_than_the_grid_is_refused_by_place_and_meshed_redistanced(
     assert "stay off the level set" in mesh.metadata["redistance"]["after_failure"]
 
 
-def test_a_failure_that_redistancing_removes_is_meshed_again_redistanced_only_for_level_set_files(
+def test_a_failed_level_set_is_meshed_again_redistanced_then_rolled(
         tmp_path, monkeypatch):
     """The redistanced retry: a level set (a file, or from_levelset in memory) with redistance=None is
     meshed once more with redistance=True after a failure that redistancing removes, or after any
