@@ -213,7 +213,20 @@ def _microstructure_info(ms) -> dict:
         "volume_fraction": round(float(ms.volume_fraction()), 6),
         "min_gap_on_grid": round(float(np.min(ms.dn2[ms.dn1 < spacing] if np.any(ms.dn1 < spacing) else ms.dn2)), 6),
         **(_box_plane_info(ms) if ms.periodic and ms.inclusions else {}),
+        **_slope_info(ms),
     }
+
+
+def _slope_info(ms) -> dict:
+    """A level set's slope spread (`gradient_scale`) and what mesh_rve makes of it."""
+    from ._pipeline import _DISTANCE_SPREAD
+
+    spread = ms.inclusions[0].description.get("slope_spread") if ms.inclusions else None
+    if spread is None:
+        return {}
+    far = spread > _DISTANCE_SPREAD and ms.can_redistance
+    return {"slope_spread": f"{spread:.3g} (" + ("far from a distance: jaxmesh mesh redistances it after a failed first try"
+                                                 if far else "distance-like") + ")"}
 
 
 def _box_plane_info(ms) -> dict:

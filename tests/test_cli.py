@@ -244,6 +244,8 @@ def test_mesh_and_validate_with_redistance(tmp_path, capsys):
     r = np.linalg.norm(x - 0.5, axis=-1)
     phi, out, report = tmp_path / "phi.npy", tmp_path / "m.vtu", tmp_path / "r.json"
     np.save(phi, (r**2 - radius**2) * (1 + 0.8 * np.sin(2 * np.pi * x[..., 0])))
+    assert main(["info", str(phi)]) == 0
+    assert re.search(r"slope_spread: [\d.]+ \(far from a distance: jaxmesh mesh redistances", capsys.readouterr().out)
     assert main(["mesh", str(phi), "-o", str(out), "--h", "0.1", "--redistance", "--report", str(report)]) == 0
     data = json.loads(report.read_text())
     assert data["metadata"]["validation"]["ok"] is True
