@@ -292,54 +292,32 @@ def _retry_config(source, config: MeshConfig, box, failure: MeshingError) -> tup
     given is redistanced first when the failure is one that redistancing removes or the field is far
     from a distance (its surfaces fold and its recovery stalls where the slope varies); then a
     failure that depends on the frame is meshed rolled."""
-    if config.redistance is None:
-        ms = _level_set_as_given(source, config, box)
-        if ms is not None and (failure.redistance_helps or
-                               ms.inclusions[0].description["slope_spread"] > _DISTANCE_SPREAD):
-            return dataclasses.replace(config, redistance=True), "redistance", (
-                "with the field made a first-order signed distance to its zero set (redistance=True: the same "
-                "signs at every sample, the interface moved within its grid cells; validate with --redistance)")
-    if failure.frame_dependent:
-        rolled = _rolled_retry_config(source, config, box)
-        if rolled is not None:
-            return rolled, "roll", ("with the box planes moved off the inclusions (roll='auto'; the mesh is in the "
-                                    "rolled frame, metadata['roll'] gives the offset; validate with --roll auto)")
+    from .geometry._microstructure import Microstructure
+    from .io._read import load_input
+
+    if isinstance(source, (str, Path)):  # read once, as the failed try read it
+        source = load_input(source, box=box, periodic=config.periodic, redistance=bool(config.redistance))
+    if not isinstance(source, Microstructure):
+        return None
+    if config.redistance is None and source.can_redistance and (
+            failure.redistance_helps or source.inclusions[0].description["slope_spread"] > _DISTANCE_SPREAD):
+        return dataclasses.replace(config, redistance=True), "redistance", (
+            "with the field made a first-order signed distance to its zero set (redistance=True: the same "
+            "signs at every sample, the interface moved within its grid cells; validate with --redistance)")
+    if failure.frame_dependent and _rolling_helps(source, config):
+        return dataclasses.replace(config, roll="auto"), "roll", (
+            "with the box planes moved off the inclusions (roll='auto'; the mesh is in the rolled frame, "
+            "metadata['roll'] gives the offset; validate with --roll auto)")
     return None
 
 
-def _level_set_as_given(source, config: MeshConfig, box):
-    """source's Microstructure when redistance would change it (a level set as given, in a file or
-    from from_levelset), else None."""
-    from .geometry._microstructure import Microstructure
-    from .io._read import load_input
-
-    if isinstance(source, (str, Path)):
-        source = load_input(source, box=box, periodic=config.periodic)
-    return source if isinstance(source, Microstructure) and source.can_redistance else None
-
-
-def _rolled_retry_config(source, config: MeshConfig, box) -> MeshConfig | None:
-    """The configuration of a second try after a MeshingError: roll='auto' when the input is a periodic
-    file, or a periodic Microstructure that can roll, meshed in its own frame (roll None; an
-    explicit roll, zeros included, is kept) and rolling moves its box planes farther from the
-    inclusions' extremes; else None."""
-    from .geometry._microstructure import Microstructure
-    from .io._read import load_input
-
-    if config.roll is not None or not config.periodic or config.backend != "conforming":
-        return None
-    if isinstance(source, Microstructure):
-        if not source.can_roll:
-            return None
-        ms = source
-    elif isinstance(source, (str, Path)):
-        ms = load_input(source, box=box, periodic=True, redistance=bool(config.redistance))
-    else:
-        return None
+def _rolling_helps(ms, config: MeshConfig) -> bool:
+    """Whether a periodic microstructure meshed in its own frame (roll None; an explicit roll, zeros
+    included, is kept) can roll and rolling moves its box planes farther from the inclusions' extremes."""
+    if config.roll is not None or not config.periodic or config.backend != "conforming" or not ms.can_roll:
+        return False
     clear, best = box_plane_clearances(ms)
-    if min(c[k] for c, k in zip(clear, best)) <= min(c[0] for c in clear):
-        return None
-    return dataclasses.replace(config, roll="auto")
+    return min(c[k] for c, k in zip(clear, best)) > min(c[0] for c in clear)
 
 
 def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):

@@ -21,14 +21,19 @@ import optimistix as optx
 from ._mesh import Mesh, on_box_planes
 
 
+def _edges_and_measures(points, cells):
+    """Edge vectors (m, d, d), row r = x_{r+1} - x_0, and unsigned measures (m,) of the cells."""
+    x = jnp.asarray(points)[np.asarray(cells)]
+    edges = x[:, 1:] - x[:, :1]
+    return edges, jnp.abs(jnp.linalg.det(edges)) / (2.0 if x.shape[-1] == 2 else 6.0)
+
+
 def _measures_and_gradients(points, cells):
     """JAX twin of `_homogenize._p1_gradients` (no flat-cell check): cell measures (m,) and the constant
     P1 shape-function gradients (m, d+1, d)."""
-    x = jnp.asarray(points)[np.asarray(cells)]
-    edges = x[:, 1:] - x[:, :1]  # row r = x_{r+1} - x_0
+    edges, measures = _edges_and_measures(points, cells)
     inverse_t = jnp.swapaxes(jnp.linalg.inv(edges), 1, 2)
-    grads = jnp.concatenate([-inverse_t.sum(axis=1, keepdims=True), inverse_t], axis=1)
-    return jnp.abs(jnp.linalg.det(edges)) / (2.0 if x.shape[-1] == 2 else 6.0), grads
+    return measures, jnp.concatenate([-inverse_t.sum(axis=1, keepdims=True), inverse_t], axis=1)
 
 
 def _directions(grad, locked):
@@ -108,9 +113,7 @@ def phase_volume(points, cells, selected) -> jax.Array:
     Args:
         points: (n, d) JAX or NumPy array; cells: (m, d + 1) ids; selected: (m,) bool mask.
     """
-    x = jnp.asarray(points)[np.asarray(cells)[np.asarray(selected, dtype=bool)]]
-    edges = x[:, 1:] - x[:, :1]
-    return jnp.sum(jnp.abs(jnp.linalg.det(edges))) / (2.0 if x.shape[-1] == 2 else 6.0)
+    return jnp.sum(_edges_and_measures(points, np.asarray(cells)[np.asarray(selected, dtype=bool)])[1])
 
 
 def effective_conductivity(mesh: Mesh, points, conductivity, *, by: str = "inclusion_id", rtol: float = 1e-10,
