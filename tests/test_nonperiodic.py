@@ -196,6 +196,36 @@ def test_bounds_hold_the_zero_set_in_the_last_cell():
     np.testing.assert_array_equal(ms.label(pts), inside.astype(np.int64))
 
 
+def _lobes_meeting_beyond_the_samples(n: int, dim: int, apart: float) -> np.ndarray:
+    """Two balls (r 0.17, centres at x = 1.1, `apart` along y): they overlap for x > 0.966 when
+    0.21 apart, for x > 1.02 when 0.3 apart."""
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(*[x] * dim, indexing="ij"), -1)
+    rest = [0.45] * (dim - 2)
+    return np.minimum(np.linalg.norm(X - [1.1, 0.5 - apart / 2, *rest], axis=-1) - 0.17,
+                      np.linalg.norm(X - [1.1, 0.5 + apart / 2, *rest], axis=-1) - 0.17)
+
+
+def test_parts_that_meet_in_the_last_cell_are_one_inclusion():
+    """Two parts apart at the last sample plane that meet between it and x = L: the field there is
+    one zero set, so they are one inclusion (as two, each continued its own level set past the last
+    sample, both reached below zero at x = L and their traces crossed on the box face: the faces
+    stage stopped, as on a thresholded Gaussian field read as a plain box). Parts that meet only
+    beyond x = L stay two."""
+    joined = Microstructure.from_levelset(_lobes_meeting_beyond_the_samples(20, 2, 0.21), periodic=False)
+    assert len(joined.inclusions) == 1
+    assert joined.phi(np.array([[1.0, 0.5]]))[0] < 0 < joined.phi(np.array([[0.95, 0.5]]))[0]
+    apart = Microstructure.from_levelset(_lobes_meeting_beyond_the_samples(20, 2, 0.3), periodic=False)
+    assert len(apart.inclusions) == 2
+    assert [inc.lower[1] < 0.5 for inc in apart.inclusions] == [True, False]  # ids in raster order
+    ms = Microstructure.from_levelset(_lobes_meeting_beyond_the_samples(20, 3, 0.21), periodic=False)
+    assert len(ms.inclusions) == 1
+    mesh = mesh_rve(ms, MeshConfig(iis=0.1, periodic=False, seed=2))
+    _check_plain_box(mesh, ms)
+    face = mesh.points[np.unique(mesh.cells[mesh.inclusion_id == 1])]
+    assert np.isclose(face[:, 0], 1.0).sum() > 3  # the inclusion reaches the face
+
+
 def test_cli_a_trace_beside_a_box_edge(tmp_path):
     """`jaxmesh mesh --no-periodic` of a sphere (r 0.2, 64^3) crossing x = 0 and z = 0 whose trace on
     x = 0 passes 0.38 grid steps above the edge x = z = 0. At 139985b (replicated border nodes) the

@@ -67,6 +67,23 @@ def label_components(mask: np.ndarray, periodic: bool) -> tuple[np.ndarray, int]
     return lut[labels], int(n_merged)
 
 
+def label_components_to_far_planes(values: np.ndarray) -> tuple[np.ndarray, int]:
+    """label_components of {values < 0} on a non-periodic grid, where parts that join in the last
+    cell, at the far box planes x = L (a step beyond the last sample, the field continued linearly
+    as `extrapolate_beyond_domain` does), are one component: the surface there is the field's one
+    zero set, not two level sets separated within less than a cell. Same raster-order ids."""
+    d = values.ndim
+    grid = tuple(slice(0, n) for n in values.shape)
+    extended = extrapolate_beyond_domain(np.pad(values, [(0, 1)] * d), np.zeros(d, int), values.shape)
+    labels, _ = label_components(extended < 0, periodic=False)
+    labels = labels[grid]
+    ids, first = np.unique(labels.ravel(), return_index=True)
+    ids, first = ids[ids > 0], first[ids > 0]  # parts only beyond the last sample are not inclusions
+    lut = np.zeros(int(labels.max()) + 1, np.int32)
+    lut[ids[np.argsort(first)]] = np.arange(1, len(ids) + 1)
+    return lut[labels], len(ids)
+
+
 def _arc(occupied: np.ndarray, periodic: bool) -> tuple[int, int]:
     """(start, length) of the smallest (circular if periodic) index interval covering occupied."""
     n = occupied.size

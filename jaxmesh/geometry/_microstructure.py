@@ -468,7 +468,8 @@ class Microstructure:
     def from_levelset(cls, values, box=None, periodic=True, order="cubic", *, reach=None,
                       check_gaps: bool = True, check_necks: bool = True,
                       redistance: bool = False) -> Microstructure:
-        """Inclusions = periodic connected components of {phi < 0} of one global field.
+        """Inclusions = periodic connected components of {phi < 0} of one global field (on a plain
+        box, parts that join in the last cell before a far face x = L are one component).
 
         Args:
             values: (nx, ny[, nz]) real samples on the node-centred grid, negative inside. Fields
@@ -531,7 +532,7 @@ class Microstructure:
         scale, spread = gradient_scale(v, mask, spacing)
         scale = scale if abs(scale - 1.0) > 0.25 else 1.0  # distance-like fields are kept as they are
         v = v / scale
-        labels, n = comp.label_components(mask, periodic)
+        labels, n = comp.label_components(mask, True) if periodic else comp.label_components_to_far_planes(v)
         starts, lengths = comp.component_arcs(labels, n, periodic)
         pad = _CORE_PAD + _SPLINE_PAD[order]
         r = _reach_steps(reach, lengths, shape, spacing, pad)
