@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from ._errors import MeshingError
-from ._periodic import minimum_image
+from ._periodic import minimum_image, wrap
 from ._quality import cross3, min_angles
 from ._surface_ops import (
     TraceMismatch,
@@ -207,7 +207,9 @@ def refuse_nodes_off_the_level_set(points: np.ndarray, phi_fn, box, inclusion_id
     if not off.any():
         return
     k = int(np.argmax(np.abs(phi)))
-    where = tuple(round(float(v), 4) for v in np.mod(points[k], np.asarray(box, float)))
+    L = np.asarray(box, float)
+    at = np.where((points[k] < 0) | (points[k] > L), wrap(points[k], L), points[k])  # a node at x = L stays there
+    where = tuple(round(float(v), 4) for v in at)
     raise MeshingError("surfaces", f"{int(off.sum())} surface node(s) stay off the level set after projection "
                        f"(|phi| up to {abs(phi[k]):.2g}, |grad phi| {np.linalg.norm(grad[k]):.2g} there) near x = "
                        f"{where}: the interpolated field has a ripple there finer than the grid (e.g. a tip sharper "

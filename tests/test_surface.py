@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
 
+from jaxmesh._errors import MeshingError
 from jaxmesh._intersect import intersecting_pairs
 from jaxmesh._quality import cell_quality, min_angles
 from jaxmesh._surface import (SurfaceConfig, as_size_fn, enclosed_volume, extract, folded, mesh_inclusion, project,
-                              release_touching, revert_around_defects, unfold)
+                              refuse_nodes_off_the_level_set, release_touching, revert_around_defects, unfold)
 from jaxmesh._surface_ops import (collapse_edges, cut_plane, flip_edges, half_edges, refine, straddling,
                                   touching_plane_nodes)
 from jaxmesh.geometry._microstructure import Microstructure
@@ -313,3 +314,13 @@ def test_match_opposite_traces_straightens_a_trace_that_turns_back_on_itself():
     ends = [{tuple(sorted(map(tuple, p[e][:, 1:].tolist()))) for e in edges if (p[e, 0] == x).all()}
             for x in (0.0, 1.0)]
     assert ends[0] == ends[1]
+
+
+def test_a_node_off_the_level_set_is_reported_where_it_is():
+    """The error names the node's place: an unwrapped node beyond the periodic box at its image in
+    [0, L), a node on a far box plane x = L at x = L (it read 0, the opposite plane, before)."""
+    sphere = sphere_sdf(np.array([0.5, 0.5, 0.5]), 0.2)
+    for node, place in (([1.0, 0.5, 1.0], r"\(1\.0, 0\.5, 1\.0\)"), ([1.25, 0.5, -0.25], r"\(0\.25, 0\.5, 0\.75\)")):
+        with pytest.raises(MeshingError, match=place):
+            refuse_nodes_off_the_level_set(np.array([node]), sphere, (1.0, 1.0, 1.0), 1, 0.01)
+    refuse_nodes_off_the_level_set(np.array([[0.7, 0.5, 0.5]]), sphere, (1.0, 1.0, 1.0), 1, 0.01)  # on it
