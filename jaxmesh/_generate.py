@@ -635,8 +635,8 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
     Inclusions are {field < u}, u the quantile giving `volume_fraction` of the nodes, less specks the
     grid does not resolve (fewer than 8 nodes or under 1.5 steps thick: the mesher refuses them), those
     with a neck narrower than a grid step (refused too), and the smaller of two components less than a
-    quarter step apart (the mesher refuses 0.02 steps as touching, and would refine such gaps far), so
-    the fraction comes out slightly below. phi is the
+    quarter step apart, also across a grid square (the mesher refuses 0.02 steps as touching, and
+    would refine such gaps far), so the fraction comes out slightly below. phi is the
     field divided by its gradient norm at nodes next to the interface (a first-order distance),
     extended elsewhere by the periodic Euclidean distance transform to those nodes.
 
@@ -693,17 +693,20 @@ def _refused_components(phi: np.ndarray, box) -> np.ndarray:
 
     ms = Microstructure.from_levelset(phi, tuple(box), check_gaps=False, check_necks=False)
     labels, n = label_components(phi < 0, True)  # the same ids as ms.inclusions
-    return (_touching_ids(ms, labels, n) | _necked_ids(ms, n))[labels]
+    return (_touching_ids(ms, phi, labels, n) | _necked_ids(ms, n))[labels]
 
 
-def _touching_ids(ms, labels: np.ndarray, n: int) -> np.ndarray:
+def _touching_ids(ms, phi: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
     """(n + 1,) bool: the smaller of each pair of components closer than _SEPARATION_STEPS, by the
-    loader's estimate (`close_pairs`)."""
+    loader's estimates (`close_pairs`, and `diagonal_gaps` across a grid square)."""
     from .geometry._components import close_pairs
+    from .geometry._microstructure import diagonal_gaps
 
     spacing = np.asarray(ms.box) / np.asarray(labels.shape)
     ids, _, _ = close_pairs(ms.dn1, ms.dn2, ms.nearest_id, labels, spacing, _SEPARATION_STEPS * spacing.min(),
                             True, limit=n)
+    pairs, gaps, _ = diagonal_gaps(ms, phi, labels)
+    ids = np.concatenate([ids, pairs[gaps < _SEPARATION_STEPS * spacing.min()]])
     counts = np.bincount(labels.ravel(), minlength=n + 1)
     drop = np.zeros(n + 1, bool)
     for a, b in ids:

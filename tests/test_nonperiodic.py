@@ -226,6 +226,35 @@ def test_parts_that_meet_in_the_last_cell_are_one_inclusion():
     assert np.isclose(face[:, 0], 1.0).sum() > 3  # the inclusion reaches the face
 
 
+def _thresholded_gaussian_field(seed: int, n: int = 40, length: float = 0.12, fraction: float = 0.25):
+    """A periodic Gaussian random field below its quantile, as users write it (NumPy FFT, no
+    redistancing): `benchmarks/sweep_shapes.py`'s numpy_grf_s<seed>."""
+    rng = np.random.default_rng(seed)
+    k = np.fft.fftfreq(n) * n
+    k2 = sum(a**2 for a in np.meshgrid(k, k, k, indexing="ij"))
+    noise = np.fft.fftn(rng.standard_normal((n,) * 3))
+    field = np.real(np.fft.ifftn(noise * np.exp(-0.25 * k2 * (2 * np.pi * length) ** 2)))
+    field /= field.std()
+    return field - np.quantile(field, fraction)
+
+
+@pytest.mark.parametrize("redistance", [False, True])
+def test_parts_that_meet_across_a_grid_square_are_refused_as_touching(redistance):
+    """Read as a plain box, this thresholded field holds two components (5 and 6) whose samples are
+    diagonal in one grid square, the square's other two samples >= 0: face-connected labelling keeps
+    them apart, yet their level sets interpolated there meet (0.017 steps apart as given, overlapping
+    redistanced). Their surfaces crossed (the surfaces stage stopped on 8 intersecting triangle pairs
+    after minutes); they are refused at once as touching, by id and place. Periodic, the field is
+    one percolating component and loads."""
+    phi = _thresholded_gaussian_field(301)
+    with pytest.raises(ValueError, match=r"closer across one grid square .* inclusions 5 and 6: "
+                                         + ("overlap" if redistance else r"gap ~ 0\.01") + r".* near x = \(0\.8"):
+        Microstructure.from_levelset(phi, periodic=False, redistance=redistance)
+    assert len(Microstructure.from_levelset(phi, periodic=False, redistance=redistance,
+                                            check_gaps=False).inclusions) == 8
+    assert len(Microstructure.from_levelset(phi, periodic=True, redistance=redistance).inclusions) == 1
+
+
 def test_cli_a_trace_beside_a_box_edge(tmp_path):
     """`jaxmesh mesh --no-periodic` of a sphere (r 0.2, 64^3) crossing x = 0 and z = 0 whose trace on
     x = 0 passes 0.38 grid steps above the edge x = z = 0. At 139985b (replicated border nodes) the

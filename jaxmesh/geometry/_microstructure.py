@@ -139,6 +139,26 @@ def _traceable(fn) -> bool:
     return isinstance(fn, (jax.tree_util.Partial, eqx.Module))
 
 
+def diagonal_gaps(ms: Microstructure, values: np.ndarray, labels: np.ndarray):
+    """Gaps between inclusions that come closest across a grid square (`comp.diagonal_squares`),
+    where no matrix sample lies between them: min of phi_a + phi_b (a distance's triangle bound,
+    negative where they overlap) over a 9^d lattice of the cell around each such square. Returns
+    (k, 2) ids, (k,) gaps and (k, d) square centres (index units), one row per pair, smallest first."""
+    ids, centres = comp.diagonal_squares(values, labels, ms.periodic)
+    d, h = values.ndim, np.asarray(ms.spacing)
+    offsets = np.stack(np.meshgrid(*[np.linspace(-0.5, 0.5, 9)] * d, indexing="ij"), -1).reshape(-1, d)
+    rows = {}
+    for pair in {tuple(p) for p in ids.tolist()}:
+        at = np.flatnonzero((ids == pair).all(axis=1))
+        pts = ((centres[at][:, None, :] + offsets) * h).reshape(-1, d)
+        total = (ms.inclusion_phi(pair[0], pts) + ms.inclusion_phi(pair[1], pts)).reshape(len(at), -1)
+        best = np.unravel_index(np.argmin(total), total.shape)
+        rows[pair] = (float(total[best]), centres[at[best[0]]] + offsets[best[1]])
+    order = sorted(rows, key=lambda p: rows[p][0])
+    return (np.array(order, np.int64).reshape(-1, 2), np.array([rows[p][0] for p in order]),
+            np.array([rows[p][1] for p in order]).reshape(-1, d))
+
+
 def evaluate(phi_fn: Callable, points: np.ndarray, name: str | None = None, chunk: int = 2**15) -> np.ndarray:
     """phi_fn at NumPy points (m, d) -> (m,) float64, in chunks padded to powers of two (few
     compilations). With a name (user functions), failures and non-finite output raise ValueError."""
@@ -480,7 +500,9 @@ class Microstructure:
             order: "cubic" (C2 B-spline) or "linear" interpolation of each inclusion's window.
             reach: distance up to which dn1/dn2 are exact; None: everywhere if affordable.
             check_gaps: refuse inclusions less than 0.02 grid step apart (touching at the grid's
-                resolution: the size function would refine the gap down to its floor).
+                resolution: the size function would refine the gap down to its floor), and those
+                that meet across one grid square (diagonal samples, the interpolated field below zero
+                between them: their surfaces would cross).
             check_necks: refuse inclusions that narrow below one grid step between two resolved
                 parts (a filament in 3D, a strip in 2D: the surfaces cannot follow it).
             redistance: replace the field by a first-order signed distance to its zero set first
@@ -551,6 +573,13 @@ class Microstructure:
                          **({"redistanced": True} if redistance else {})} for _ in range(n)]
         ms = cls._from_windows(box, periodic, order, labels, (starts, lengths), windows, fields, r,
                                descriptions, "from_levelset", check_gaps, check_necks)
+        if check_gaps:
+            ids, gaps, centres = diagonal_gaps(ms, v, labels)
+            min_gap = comp._MIN_GAP_STEPS * min(spacing)
+            if (gaps < min_gap).any():
+                close = gaps < min_gap
+                raise ValueError(comp.diagonal_gaps_message(ids[close], gaps[close], centres[close], spacing,
+                                                            min_gap, "from_levelset"))
         grid = np.array(values, copy=True)
         build = functools.partial(cls.from_levelset, box=box, periodic=periodic, order=order, reach=reach,
                                   check_gaps=check_gaps, check_necks=check_necks)
