@@ -635,7 +635,7 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
     Inclusions are {field < u}, u the quantile giving `volume_fraction` of the nodes, less specks the
     grid does not resolve (fewer than 8 nodes or under 1.5 steps thick: the mesher refuses them), those
     with a neck narrower than a grid step (refused too), and the smaller of two components less than a
-    quarter step apart, also across a grid square (the mesher refuses 0.02 steps as touching, and
+    quarter step apart, also across a grid cell (the mesher refuses 0.02 steps as touching, and
     would refine such gaps far), so the fraction comes out slightly below. phi is the
     field divided by its gradient norm at nodes next to the interface (a first-order distance),
     extended elsewhere by the periodic Euclidean distance transform to those nodes.
@@ -698,7 +698,7 @@ def _refused_components(phi: np.ndarray, box) -> np.ndarray:
 
 def _touching_ids(ms, phi: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
     """(n + 1,) bool: the smaller of each pair of components closer than _SEPARATION_STEPS, by the
-    loader's estimates (`close_pairs`, and `diagonal_gaps` across a grid square)."""
+    loader's estimates (`close_pairs`, and `diagonal_gaps` across a grid cell)."""
     from .geometry._components import close_pairs
     from .geometry._microstructure import diagonal_gaps
 

@@ -134,6 +134,23 @@ def test_levelset_inclusions_touching_at_the_grid_resolution_are_refused_by_id(d
     assert len(Microstructure.from_levelset(pair(0.05 * h)).inclusions) == 2
 
 
+def test_diagonal_cells_find_components_that_meet_across_a_square_or_a_cube():
+    from jaxmesh.geometry._components import diagonal_cells
+
+    def found(negative, periodic=False):
+        v = np.ones((4, 4, 4))
+        for node, value in negative.items():
+            v[node] = value
+        ids, centres = diagonal_cells(v, label_components(v < 0, periodic)[0], periodic)
+        return ids.tolist(), centres.tolist()
+
+    assert found({(1, 1, 1): -1.0, (2, 2, 1): -0.5}) == ([[1, 2]], [[1.5, 1.5, 1.0]])  # a square
+    assert found({(1, 1, 1): -1.0, (2, 2, 2): -0.5}) == ([[1, 2]], [[1.5, 1.5, 1.5]])  # a cube
+    assert found({(1, 1, 1): -1.0, (2, 1, 1): -1.0, (2, 2, 1): -0.5}) == ([], [])  # one component
+    assert found({(0, 0, 0): -1.0, (3, 3, 0): -1.0}) == ([], [])  # apart on a plain box
+    assert found({(0, 0, 0): -1.0, (3, 3, 0): -1.0}, periodic=True) == ([[1, 2]], [[3.5, 3.5, 0.0]])
+
+
 def test_a_matrix_node_shared_by_two_inclusions_does_not_pull_the_farther_one():
     """Two spheres one step apart, the gap's ends 0.04 steps past nodes 23 and 24: node 24 holds
     sphere 2's distance (0.04 steps). As sphere 1's value it made sphere 1's cubic level set ring

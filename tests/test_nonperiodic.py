@@ -247,7 +247,7 @@ def test_parts_that_meet_across_a_grid_square_are_refused_as_touching(redistance
     after minutes); they are refused at once as touching, by id and place. Periodic, the field is
     one percolating component and loads."""
     phi = _thresholded_gaussian_field(301)
-    with pytest.raises(ValueError, match=r"closer across one grid square .* inclusions 5 and 6: "
+    with pytest.raises(ValueError, match=r"closer across one grid cell .* inclusions 5 and 6: "
                                          + ("overlap" if redistance else r"gap ~ 0\.01") + r".* near x = \(0\.8"):
         Microstructure.from_levelset(phi, periodic=False, redistance=redistance)
     assert len(Microstructure.from_levelset(phi, periodic=False, redistance=redistance,

@@ -10,6 +10,7 @@ the inclusion. The validation of raw inputs (fields, labels, boxes, points) live
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -630,41 +631,45 @@ def close_pairs(dn1, dn2, nearest, labels, spacing, min_gap: float, periodic: bo
     return ids, np.array([r[2] for r in rows], float), np.array([r[3] for r in rows], np.int64)
 
 
-def diagonal_squares(values: np.ndarray, labels: np.ndarray, periodic: bool, per_pair: int = 4):
-    """Grid squares whose two diagonal samples lie in different components (the other two >= 0):
-    where two inclusions come closest without a matrix sample between them, which `close_pairs`
-    (gaps estimated at nodes) does not see. Per pair, the `per_pair` squares with the lowest
-    bilinear saddle (f_a f_b - f_c f_e) / (f_a + f_b - f_c - f_e), below zero where the bilinear
-    interpolation joins them.
+def diagonal_cells(values: np.ndarray, labels: np.ndarray, periodic: bool, per_pair: int = 4):
+    """Grid squares (and cubes in 3D) whose two opposite corners lie in different components, the
+    other corners >= 0: where two inclusions come closest without a matrix sample between them,
+    which `close_pairs` (gaps estimated at nodes) does not see. Per pair, the `per_pair` cells with
+    the lowest mean of their corners (the multilinear interpolant at the centre).
 
-    Returns (k, 2) ids (ascending) and (k, d) square centres in index units.
+    Returns (k, 2) ids (ascending) and (k, d) cell centres in index units.
     """
     d, found = values.ndim, {}
-    for p in range(d):
-        for q in range(p + 1, d):
-            def corner(a, dp, dq):  # the square's corner (dp, dq) for every square
-                if periodic:
-                    return np.roll(a, (-dp, -dq), axis=(p, q))
-                cut = [slice(None)] * d
-                cut[p], cut[q] = slice(dp, a.shape[p] - 1 + dp), slice(dq, a.shape[q] - 1 + dq)
-                return a[tuple(cut)]
-            f = [corner(values, i, j) for i, j in ((0, 0), (1, 0), (0, 1), (1, 1))]
-            lab = [corner(labels, i, j) for i, j in ((0, 0), (1, 0), (0, 1), (1, 1))]
-            for a, b, c, e in ((0, 3, 1, 2), (1, 2, 0, 3)):  # diagonal a-b inside, c-e the other one
-                hit = (lab[a] > 0) & (lab[b] > 0) & (lab[a] != lab[b]) & (f[c] >= 0) & (f[e] >= 0)
-                for idx in zip(*np.nonzero(hit)):
-                    fa, fb, fc, fe = (float(f[k][idx]) for k in (a, b, c, e))
-                    centre = np.asarray(idx, float)
-                    centre[[p, q]] += 0.5
-                    pair = tuple(sorted((int(lab[a][idx]), int(lab[b][idx]))))
-                    found.setdefault(pair, []).append(((fa * fb - fc * fe) / (fa + fb - fc - fe), centre))
+    for axes in [a for r in range(2, d + 1) for a in itertools.combinations(range(d), r)]:
+        def corner(a, offset):  # the cell's corner at `offset` (0/1 along `axes`) for every cell
+            if periodic:
+                return np.roll(a, tuple(-o for o in offset), axis=axes)
+            cut = [slice(None)] * d
+            for k, o in zip(axes, offset):
+                cut[k] = slice(o, a.shape[k] - 1 + o)
+            return a[tuple(cut)]
+        offsets = list(itertools.product((0, 1), repeat=len(axes)))
+        f = {o: corner(values, o) for o in offsets}
+        lab = {o: corner(labels, o) for o in offsets}
+        mean = sum(f.values()) / len(offsets)
+        for o in offsets[: len(offsets) // 2]:  # each diagonal once
+            q = tuple(1 - k for k in o)
+            hit = (lab[o] > 0) & (lab[q] > 0) & (lab[o] != lab[q])
+            for r in offsets:
+                if r not in (o, q):
+                    hit &= f[r] >= 0
+            for idx in zip(*np.nonzero(hit)):
+                centre = np.asarray(idx, float)
+                centre[list(axes)] += 0.5
+                pair = tuple(sorted((int(lab[o][idx]), int(lab[q][idx]))))
+                found.setdefault(pair, []).append((float(mean[idx]), centre))
     rows = [(pair, x) for pair in sorted(found) for _, x in sorted(found[pair], key=lambda r: r[0])[:per_pair]]
     return (np.array([r[0] for r in rows], np.int64).reshape(-1, 2),
             np.array([r[1] for r in rows], float).reshape(-1, d))
 
 
 def diagonal_gaps_message(ids, gaps, centres, spacing, min_gap: float, where: str) -> str:
-    """The error for pairs that come closer than min_gap across a grid square: worst first."""
+    """The error for pairs that come closer than min_gap across a grid cell: worst first."""
     h = float(min(spacing))
     listed = []
     for (a, b), g, x in list(zip(ids, gaps, centres))[:6]:
@@ -672,10 +677,10 @@ def diagonal_gaps_message(ids, gaps, centres, spacing, min_gap: float, where: st
         place = tuple(round(float(c * s), 4) for c, s in zip(x, spacing))
         listed.append(f"inclusions {a} and {b}: {what} near x = {place}")
     return (f"{where} expected inclusions separated by at least {min_gap / h:.3g} grid step ({min_gap:.4g}), "
-            f"got {len(ids)} pair(s) closer across one grid square (two diagonal samples inside different "
+            f"got {len(ids)} pair(s) closer across one grid cell (two diagonal samples inside different "
             "inclusions, their level sets interpolated between them touching or overlapping, so their surfaces "
-            "would cross): " + "; ".join(listed) + ". Hint: move them apart (raise the field at the square's "
-            "other two samples), merge them (a negative sample there joins them into one inclusion), or sample "
+            "would cross): " + "; ".join(listed) + ". Hint: move them apart (raise the field at the cell's "
+            "other samples), merge them (a negative sample there joins them into one inclusion), or sample "
             "the field on a finer grid.")
 
 

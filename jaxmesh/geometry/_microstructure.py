@@ -140,11 +140,11 @@ def _traceable(fn) -> bool:
 
 
 def diagonal_gaps(ms: Microstructure, values: np.ndarray, labels: np.ndarray):
-    """Gaps between inclusions that come closest across a grid square (`comp.diagonal_squares`),
+    """Gaps between inclusions that come closest across a grid square or cube (`comp.diagonal_cells`),
     where no matrix sample lies between them: min of phi_a + phi_b (a distance's triangle bound,
-    negative where they overlap) over a 9^d lattice of the cell around each such square. Returns
-    (k, 2) ids, (k,) gaps and (k, d) square centres (index units), one row per pair, smallest first."""
-    ids, centres = comp.diagonal_squares(values, labels, ms.periodic)
+    negative where they overlap) over a 9^d lattice of a step around each such cell's centre. Returns
+    (k, 2) ids, (k,) gaps and (k, d) places (index units), one row per pair, smallest first."""
+    ids, centres = comp.diagonal_cells(values, labels, ms.periodic)
     d, h = values.ndim, np.asarray(ms.spacing)
     offsets = np.stack(np.meshgrid(*[np.linspace(-0.5, 0.5, 9)] * d, indexing="ij"), -1).reshape(-1, d)
     rows = {}
@@ -500,9 +500,9 @@ class Microstructure:
             order: "cubic" (C2 B-spline) or "linear" interpolation of each inclusion's window.
             reach: distance up to which dn1/dn2 are exact; None: everywhere if affordable.
             check_gaps: refuse inclusions less than 0.02 grid step apart (touching at the grid's
-                resolution: the size function would refine the gap down to its floor), and those
-                that meet across one grid square (diagonal samples, the interpolated field below zero
-                between them: their surfaces would cross).
+                resolution: the size function would refine the gap down to its floor), also across one
+                grid square or cube (two diagonal samples in different inclusions, no matrix sample
+                between them, where their interpolated level sets meet: their surfaces would cross).
             check_necks: refuse inclusions that narrow below one grid step between two resolved
                 parts (a filament in 3D, a strip in 2D: the surfaces cannot follow it).
             redistance: replace the field by a first-order signed distance to its zero set first
