@@ -428,7 +428,8 @@ def random_inclusions(
     Args:
         box: (d,) box lengths, d in {2, 3}.
         n: number of inclusions; volume_fraction: target inclusion fraction in (0, 1). Give either
-            or both (then it stops at whichever is reached first).
+            or both (then it stops at whichever is reached first; of the n drawn, one that would
+            overshoot the fraction by more than tol is left out).
         shape: "sphere" or "ellipsoid" (prolate spheroid, uniformly random orientation).
         radius: radius / largest semi-axis: a float, (mean, std) of a normal truncated to
             [max(mean - 2 std, mean / 4), mean + 2 std], or a callable (rng, n) -> (n,) radii.
@@ -500,6 +501,8 @@ def random_inclusions(
     for i in range(len(axes)):
         if committed >= enough:
             break
+        if n is not None and committed + vols[i] > target + tol * box_volume:
+            continue  # it would overshoot the fraction: a smaller one (they come largest first) may fit
         committed += vols[i]
         for _ in range(-(-max_attempts // batch)):
             x = rng.uniform(0, 1, (batch, dim)) * box

@@ -113,6 +113,17 @@ def test_count_and_fraction_together_stop_at_first():
     assert len(many) < 500 and abs(_fraction(many, box) - 0.2) <= 0.005
 
 
+def test_count_and_fraction_leave_out_one_that_would_overshoot_the_fraction():
+    """`jaxmesh generate --dim 2 --kind ellipsoid --n 60 --volume-fraction 0.4 --box-gap 0 --seed 45`:
+    the 12th of the largest-first ellipses took the fraction to 0.4107, past the tolerance, and the
+    generator stopped with a hint that n was too small; it is left out and a smaller one placed."""
+    box = (1.0, 1.0)
+    specs = random_inclusions(box, n=60, volume_fraction=0.4, shape="ellipsoid", radius=(0.1, 0.02),
+                              aspect=(1.0, 2.0), min_gap=0.02, box_gap=0.0, seed=45)
+    assert len(specs) < 60 and abs(_fraction(specs, box) - 0.4) <= 0.005
+    assert _fraction(specs[:-1], box) < 0.4 - 0.005  # not reached without the last one placed
+
+
 def test_seed_reproducible_and_different_seeds_differ():
     kw = dict(n=12, shape="ellipsoid", radius=(0.12, 0.03), min_gap=0.02)
     a, b = random_inclusions((1, 1, 1), seed=7, **kw), random_inclusions((1, 1, 1), seed=7, **kw)
