@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from jaxmesh._generate import gaussian_random_field
 from jaxmesh._periodic import minimum_image
 
 HERE = Path(__file__).resolve().parent.parent
@@ -206,12 +207,7 @@ def _needle(options: list[str]):
 def _numpy_excursion(seed: int, options: list[str], n: int = 40, length: float = 0.12, fraction: float = 0.25):
     """A Gaussian random field thresholded as users write it (NumPy FFT, no redistancing): not a distance."""
     def case(out: Path):
-        rng = np.random.default_rng(seed)
-        k = np.fft.fftfreq(n) * n
-        k2 = sum(a**2 for a in np.meshgrid(k, k, k, indexing="ij"))
-        noise = np.fft.fftn(rng.standard_normal((n,) * 3))
-        field = np.real(np.fft.ifftn(noise * np.exp(-0.25 * k2 * (2 * np.pi * length) ** 2)))
-        field /= field.std()
+        field = gaussian_random_field((1.0, 1.0, 1.0), (n,) * 3, length, seed)
         np.save(p := out / f"numpy_grf_s{seed}.npy", field - np.quantile(field, fraction))
         return p, options, f"NumPy Gaussian field below its {fraction:.0%} quantile, l {length}, {n}^3 seed {seed}"
     return case

@@ -630,6 +630,18 @@ def sample_levelset(specs: Sequence[InclusionSpec], box, grid_shape) -> np.ndarr
     return phi
 
 
+def gaussian_random_field(box, grid_shape, correlation_length: float, seed: int = 0) -> np.ndarray:
+    """Periodic Gaussian random field on the node grid (node i at x = i L / n): zero mean, unit
+    variance, covariance exp(-r^2 / (2 l^2)), made by filtering white noise with the square root of
+    its spectral density in Fourier space. No checks: `excursion_set` validates its arguments."""
+    shape = tuple(int(n) for n in grid_shape)
+    h = np.asarray(box, float) / np.asarray(shape)
+    rng = np.random.default_rng(seed)
+    k2 = sum(np.meshgrid(*[(2 * np.pi * np.fft.fftfreq(n, d=hk)) ** 2 for n, hk in zip(shape, h)], indexing="ij"))
+    field = np.fft.ifftn(np.fft.fftn(rng.normal(size=shape)) * np.exp(-0.25 * correlation_length**2 * k2)).real
+    return (field - field.mean()) / field.std()
+
+
 def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction: float, seed: int = 0) -> np.ndarray:
     """Excursion set of a periodic Gaussian random field, as a signed-distance-like level set.
 
@@ -665,10 +677,7 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
             f"correlation_length: expected between one grid step {h.max():.4g} and the box {box.min():.4g}, got "
             f"{correlation_length!r}. Hint: refine the grid or choose l of a few percent of the box."
         )
-    rng = np.random.default_rng(seed)
-    k2 = sum(np.meshgrid(*[(2 * np.pi * np.fft.fftfreq(n, d=hk)) ** 2 for n, hk in zip(shape, h)], indexing="ij"))
-    field = np.fft.ifftn(np.fft.fftn(rng.normal(size=shape)) * np.exp(-0.25 * correlation_length**2 * k2)).real
-    field = (field - field.mean()) / field.std()
+    field = gaussian_random_field(box, shape, correlation_length, seed)
     g = field - np.quantile(field, volume_fraction)
     phi = first_order_distance(g, g < 0, h, periodic=True)
     specks = _unresolved_components(phi)  # the mesher refuses them (they are below the grid's resolution)

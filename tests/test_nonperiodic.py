@@ -11,6 +11,7 @@ import pytest
 
 from jaxmesh import MeshConfig, Microstructure, mesh_rve, quality_report, sphere_sdf, validate
 from jaxmesh._cli import main
+from jaxmesh._generate import gaussian_random_field
 from jaxmesh._quality import signed_volumes
 from jaxmesh._sizing import interface_sources
 
@@ -226,27 +227,16 @@ def test_parts_that_meet_in_the_last_cell_are_one_inclusion():
     assert np.isclose(face[:, 0], 1.0).sum() > 3  # the inclusion reaches the face
 
 
-def _thresholded_gaussian_field(seed: int, n: int = 40, length: float = 0.12, fraction: float = 0.25):
-    """A periodic Gaussian random field below its quantile, as users write it (NumPy FFT, no
-    redistancing): `benchmarks/sweep_shapes.py`'s numpy_grf_s<seed>."""
-    rng = np.random.default_rng(seed)
-    k = np.fft.fftfreq(n) * n
-    k2 = sum(a**2 for a in np.meshgrid(k, k, k, indexing="ij"))
-    noise = np.fft.fftn(rng.standard_normal((n,) * 3))
-    field = np.real(np.fft.ifftn(noise * np.exp(-0.25 * k2 * (2 * np.pi * length) ** 2)))
-    field /= field.std()
-    return field - np.quantile(field, fraction)
-
-
 @pytest.mark.parametrize("redistance", [False, True])
 def test_parts_that_meet_across_a_grid_square_are_refused_as_touching(redistance):
-    """Read as a plain box, this thresholded field holds two components (5 and 6) whose samples are
-    diagonal in one grid square, the square's other two samples >= 0: face-connected labelling keeps
-    them apart, yet their level sets interpolated there meet (0.017 steps apart as given, overlapping
+    """Read as a plain box, this thresholded Gaussian field (`benchmarks/sweep_shapes.py`'s
+    numpy_grf_s301) holds two components (5 and 6) whose samples are diagonal in one grid square,
+    the square's other two samples >= 0: face-connected labelling keeps them apart, yet their level sets interpolated there meet (0.017 steps apart as given, overlapping
     redistanced). Their surfaces crossed (the surfaces stage stopped on 8 intersecting triangle pairs
     after minutes); they are refused at once as touching, by id and place. Periodic, the field is
     one percolating component and loads."""
-    phi = _thresholded_gaussian_field(301)
+    field = gaussian_random_field((1.0, 1.0, 1.0), (40, 40, 40), 0.12, seed=301)
+    phi = field - np.quantile(field, 0.25)  # thresholded as users write it: not a distance
     with pytest.raises(ValueError, match=r"closer across one grid cell .* inclusions 5 and 6: "
                                          + ("overlap" if redistance else r"gap ~ 0\.01") + r".* near x = \(0\.8"):
         Microstructure.from_levelset(phi, periodic=False, redistance=redistance)
