@@ -390,9 +390,9 @@ def test_excursion_set_drops_components_touching_at_the_grid_resolution(seed, fr
 
 def test_excursion_set_drops_the_smaller_of_two_components_meeting_across_a_grid_square():
     """Seed 7's raw set holds two pairs of components diagonal in one grid square, with no matrix sample
-    between them and their level sets nearer than a quarter step there (overlapping by 0.18 steps, and
-    0.016 steps apart): their surfaces would touch or cross. `close_pairs`, at nodes, missed the second
-    (the output kept it, 369 and 46 nodes, 13 components); the generator drops the smaller of each."""
+    between them and their level sets nearer than a quarter step there (one pair overlapping, the other
+    a hair apart): their surfaces would touch or cross. `close_pairs`, at nodes, missed the second (the
+    output kept it); the generator drops the smaller of each."""
     import jaxmesh.geometry._microstructure as micro
     from jaxmesh.geometry._components import label_components
 
