@@ -679,7 +679,7 @@ def diagonal_gaps_message(ids, gaps, centres, spacing, min_gap: float, where: st
     return (f"{where} expected inclusions separated by at least {min_gap / h:.3g} grid step ({min_gap:.4g}), "
             f"got {len(ids)} pair(s) closer across one grid cell (two diagonal samples inside different "
             "inclusions, their level sets interpolated between them touching or overlapping, so their surfaces "
-            "would cross): " + "; ".join(listed) + ". Hint: move them apart (raise the field at the cell's "
+            "would touch or cross): " + "; ".join(listed) + ". Hint: move them apart (raise the field at the cell's "
             "other samples), merge them (a negative sample there joins them into one inclusion), or sample "
             "the field on a finer grid.")
 

@@ -151,6 +151,7 @@ def diagonal_gaps(ms: Microstructure, values: np.ndarray, labels: np.ndarray):
     for pair in {tuple(p) for p in ids.tolist()}:
         at = np.flatnonzero((ids == pair).all(axis=1))
         pts = ((centres[at][:, None, :] + offsets) * h).reshape(-1, d)
+        pts = pts if ms.periodic else np.clip(pts, 0.0, np.asarray(ms.box))  # a plain box ends at its planes
         total = (ms.inclusion_phi(pair[0], pts) + ms.inclusion_phi(pair[1], pts)).reshape(len(at), -1)
         best = np.unravel_index(np.argmin(total), total.shape)
         rows[pair] = (float(total[best]), centres[at[best[0]]] + offsets[best[1]])
@@ -576,8 +577,8 @@ class Microstructure:
         if check_gaps:
             ids, gaps, centres = diagonal_gaps(ms, v, labels)
             min_gap = comp._MIN_GAP_STEPS * min(spacing)
-            if (gaps < min_gap).any():
-                close = gaps < min_gap
+            close = gaps < min_gap
+            if close.any():
                 raise ValueError(comp.diagonal_gaps_message(ids[close], gaps[close], centres[close], spacing,
                                                             min_gap, "from_levelset"))
         grid = np.array(values, copy=True)
