@@ -231,10 +231,10 @@ def test_parts_that_meet_in_the_last_cell_are_one_inclusion():
 def test_parts_that_meet_across_a_grid_square_are_refused_as_touching(redistance):
     """Read as a plain box, this thresholded Gaussian field (`benchmarks/sweep_shapes.py`'s
     numpy_grf_s301) holds two components (5 and 6) whose samples are diagonal in one grid square,
-    the square's other two samples >= 0: face-connected labelling keeps them apart, yet their level sets interpolated there meet (0.017 steps apart as given, overlapping
-    redistanced). Their surfaces crossed (the surfaces stage stopped on 8 intersecting triangle pairs
-    after minutes); they are refused at once as touching, by id and place. Periodic, the field is
-    one percolating component and loads."""
+    the square's other two samples >= 0: face-connected labelling keeps them apart, yet their level
+    sets interpolated there meet (0.017 steps apart as given, overlapping redistanced). Their surfaces
+    crossed (the surfaces stage stopped on 8 intersecting triangle pairs after minutes); they are
+    refused at once as touching, by id and place. Periodic, the field is one component and loads."""
     field = gaussian_random_field((1.0, 1.0, 1.0), (40, 40, 40), 0.12, seed=301)
     phi = field - np.quantile(field, 0.25)  # thresholded as users write it: not a distance
     with pytest.raises(ValueError, match=r"closer across one grid cell .* inclusions 5 and 6: "
