@@ -76,7 +76,8 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         if kept < _KEPT_FRACTION_NOTE * requested:
             steps = args.correlation_length / min(b / n for b, n in zip(box, grid_shape))
             print(f"    note: node fraction {kept:.4f} against the requested {requested:g}: the components the mesher "
-                  "would refuse (specks, necks under a grid step, pairs under a quarter step apart) were dropped; "
+                  "would refuse (specks, necks under a grid step, pairs under a quarter step apart) were dropped "
+                  "or cut, and no threshold tried came nearer; "
                   f"the correlation length is {steps:.1f} grid steps, so a longer --correlation-length or a finer "
                   "--grid keeps more (or try other --seed values)", flush=True)
         spanning = gen.spanning_components(phi) if args.dim == 2 else []

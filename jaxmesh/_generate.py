@@ -647,13 +647,14 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
 
     The field has covariance exp(-r^2 / (2 l^2)) (l = correlation_length), made by filtering white
     noise with the square root of its spectral density in Fourier space, so it is exactly periodic.
-    Inclusions are {field < u}, u the quantile giving `volume_fraction` of the nodes, less specks the
-    grid does not resolve (fewer than 8 nodes or under 1.5 steps thick: the mesher refuses them), those
-    with a neck narrower than a grid step (refused too), and the smaller of two components less than a
-    quarter step apart, also across a grid cell (the mesher refuses 0.02 steps as touching, and
-    would refine such gaps far), so the fraction comes out slightly below. phi is the
-    field divided by its gradient norm at nodes next to the interface (a first-order distance),
-    extended elsewhere by the periodic Euclidean distance transform to those nodes.
+    Inclusions are {field < u}, made admissible for the mesher at the grid's resolution: specks it does
+    not resolve (fewer than 8 nodes or under 1.5 steps thick) are dropped, necks narrower than a grid
+    step are cut (their thin nodes become matrix), and of two components less than a quarter step
+    apart, also across a grid cell, the smaller is dropped (the mesher refuses 0.02 steps as touching,
+    and would refine such gaps far). The level u is then moved until the node fraction is
+    `volume_fraction` to within 0.002, or the nearest of six tries (a drop makes it jump). phi is the field
+    divided by its gradient norm at nodes next to the interface (a first-order distance), extended
+    elsewhere by the periodic Euclidean distance transform to those nodes.
 
     Args:
         box: (d,) lengths; grid_shape: (d,) nodes per axis (node i at x = i L / n).
@@ -663,8 +664,6 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
     Returns:
         phi (grid_shape), float64, negative inside.
     """
-    from .geometry._components import first_order_distance  # lazy: the geometry package imports jax
-
     box = _check_box(box)
     shape = _check_grid(grid_shape, box.shape[0])
     h = box / np.asarray(shape)
@@ -678,34 +677,79 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
             f"{correlation_length!r}. Hint: refine the grid or choose l of a few percent of the box."
         )
     field = gaussian_random_field(box, shape, correlation_length, seed)
-    g = field - np.quantile(field, volume_fraction)
-    phi = first_order_distance(g, g < 0, h, periodic=True)
-    specks = _unresolved_components(phi)  # the mesher refuses them (they are below the grid's resolution)
-    inside = (g < 0) & ~specks
-    phi = first_order_distance(g, inside, h, periodic=True) if specks.any() else phi
-    for _ in range(_MAX_DROP_ROUNDS):
-        refused = _refused_components(phi, box)
-        if not refused.any():
-            return phi
-        inside &= ~refused
-        phi = first_order_distance(g, inside, h, periodic=True)
-    raise RuntimeError(f"excursion_set: components still refused after {_MAX_DROP_ROUNDS} rounds")  # pragma: no cover
+    target, best = volume_fraction, None
+    lo, hi, level = 0.0, 1.0, target
+    for _ in range(_LEVEL_ROUNDS):
+        try:
+            phi = _admissible_excursion(field - np.quantile(field, level), box, correlation_length)
+        except ValueError as error:  # nothing admissible at this level: try a higher one
+            phi, fraction, failure = None, 0.0, error
+        else:
+            fraction = float((phi < 0).mean())
+        if phi is not None and (best is None or abs(fraction - target) < abs(best[1] - target)):
+            best = (phi, fraction)
+        if abs(fraction - target) <= _FRACTION_TOL:
+            break
+        # repairs only remove nodes, so the fraction is at most the level; it jumps where a drop comes
+        # or goes, so bracket the level and bisect once it is bracketed
+        lo, hi = (level, hi) if fraction < target else (lo, level)
+        step = level + target - fraction
+        level = step if lo < step < hi and hi == 1.0 else 0.5 * (lo + hi)
+    if best is None:
+        raise failure
+    return best[0]
 
 
-_MAX_DROP_ROUNDS = 6
+_LEVEL_ROUNDS = 6
+_FRACTION_TOL = 0.002  # node fraction; the raw quantile hits it exactly
+_MAX_DROP_ROUNDS = 8
 _SEPARATION_STEPS = 0.25  # closest components kept, in grid steps
 
 
-def _refused_components(phi: np.ndarray, box) -> np.ndarray:
-    """(grid) bool: nodes of the components Microstructure.from_levelset would refuse, by its own
-    estimates: those with a neck below one grid step, and the smaller of each pair closer than
-    _SEPARATION_STEPS."""
-    from .geometry._components import label_components
+def _admissible_excursion(g: np.ndarray, box: np.ndarray, correlation_length: float) -> np.ndarray:
+    """phi of {g < 0} less what Microstructure.from_levelset would refuse (see `excursion_set`)."""
+    from .geometry._components import first_order_distance  # lazy: the geometry package imports jax
+
+    h = box / np.asarray(g.shape)
+    inside, cut = g < 0, np.zeros(g.shape, bool)
+    for _ in range(_MAX_DROP_ROUNDS):
+        if not inside.any():
+            break
+        phi = first_order_distance(g, inside, h, periodic=True)
+        phi[cut] = np.maximum(phi[cut], h.max())  # a cut node is a step outside: the pieces stay a step apart
+        dropped, necks = _refused_components(phi, box)
+        if not (dropped.any() or necks.any()):
+            return phi
+        inside &= ~(dropped | necks)
+        cut |= necks
+    raise ValueError(
+        f"excursion_set: no admissible excursion set at this resolution (correlation_length "
+        f"{correlation_length:g}, grid step {h.max():.4g}): "
+        + ("every component was too small, too thin or too close to another" if not inside.any() else
+           f"components still too thin or too close after {_MAX_DROP_ROUNDS} rounds of repairs")
+        + ". Hint: a correlation length of at least 4 grid steps, or a finer grid."
+    )
+
+
+def _refused_components(phi: np.ndarray, box) -> tuple[np.ndarray, np.ndarray]:
+    """(grid) bool masks by Microstructure.from_levelset's own verdicts: the nodes to drop (components
+    the grid does not resolve; then the smaller of each pair closer than _SEPARATION_STEPS, and any
+    necked component whose neck the periodic grid does not show) and the neck nodes to cut (necks
+    below one grid step)."""
+    from .geometry._components import _NECK_STEPS, _unresolved, label_components, neck_nodes
     from .geometry._microstructure import Microstructure
 
-    ms = Microstructure.from_levelset(phi, tuple(box), check_gaps=False, check_necks=False)
+    ms = Microstructure.from_levelset(phi, tuple(box), check_sizes=False, check_gaps=False, check_necks=False)
     labels, n = label_components(phi < 0, True)  # the same ids as ms.inclusions
-    return (_touching_ids(ms, phi, labels, n) | _necked_ids(ms, n))[labels]
+    specks = np.zeros(n + 1, bool)
+    specks[[inc.id for inc in ms.inclusions
+            if _unresolved(inc.description["n_samples"], inc.description["thickness"])]] = True
+    if specks.any():  # first: the other verdicts may change without them
+        return specks[labels], np.zeros(phi.shape, bool)
+    necked = _necked_ids(ms, n)
+    cut = neck_nodes(phi, labels, _NECK_STEPS) & necked[labels] if necked.any() else np.zeros(phi.shape, bool)
+    uncut = necked & ~np.isin(np.arange(n + 1), labels[cut])
+    return (_touching_ids(ms, phi, labels, n) | uncut)[labels], cut
 
 
 def _touching_ids(ms, phi: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
@@ -741,27 +785,6 @@ def spanning_components(phi: np.ndarray) -> list[int]:
     labels, n = label_components(phi < 0, True)
     _, lengths = component_arcs(labels, n, True)
     return [int(i) + 1 for i in np.flatnonzero((lengths >= np.asarray(phi.shape)).any(axis=1))]
-
-
-def _unresolved_components(phi: np.ndarray) -> np.ndarray:
-    """(grid) bool: nodes of the periodic components of phi < 0 that Microstructure.from_levelset
-    refuses as unresolved (fewer than _MIN_SAMPLES nodes or thinner than _MIN_THICKNESS steps)."""
-    from scipy import ndimage
-
-    from .geometry._components import _MIN_SAMPLES, _MIN_THICKNESS, chord_thickness, label_components
-
-    labels, n = label_components(phi < 0, True)
-    counts = np.bincount(labels.ravel(), minlength=n + 1)
-    bad = np.zeros(n + 1, bool)
-    for c, box in enumerate(ndimage.find_objects(labels), start=1):
-        if box is None:
-            continue
-        if counts[c] < _MIN_SAMPLES:
-            bad[c] = True
-            continue
-        window = np.ix_(*[np.arange(b.start - 1, b.stop + 1) % m for b, m in zip(box, phi.shape)])  # + 1 layer
-        bad[c] = chord_thickness(phi[window], labels[window] == c) < _MIN_THICKNESS
-    return bad[labels]
 
 
 # ------------------------------------------------------------------------------ files, structures

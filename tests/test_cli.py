@@ -176,21 +176,21 @@ def test_generate_grf_names_the_inclusions_that_percolate(tmp_path, capsys):
 
 
 def test_generate_grf_says_when_dropped_components_take_the_fraction_down(tmp_path, capsys):
-    """Seed 1 at l = 0.05 (3.2 steps) keeps 0.13 of the requested 0.3 (a large component has a neck
-    under a grid step): generate says so and why; l = 0.08 keeps the fraction and says nothing."""
+    """At l = one grid step (16^3) and 0.3 % the components are specks of a few nodes, and the nearest
+    fraction that the generator's thresholds reach after dropping them is 0.002: generate says so and
+    why; l = 0.08 on a 64^2 grid keeps the fraction and says nothing."""
 
-    def generate(length):
-        out = tmp_path / f"g{length}.npz"
-        assert main(["generate", str(out), "--dim", "2", "--kind", "grf", "--volume-fraction", "0.3",
-                     "--correlation-length", str(length), "--grid", "64", "--seed", "1"]) == 0
+    def generate(*args):
+        out = tmp_path / "g.npz"
+        assert main(["generate", str(out), "--kind", "grf", "--seed", "1", *args]) == 0
         with np.load(out) as z:
             return float((z["phi"] < 0).mean()), capsys.readouterr().out
 
-    kept, text = generate(0.05)
-    assert kept < 0.8 * 0.3
-    assert f"node fraction {kept:.4f} against the requested 0.3" in text
-    assert "3.2 grid steps" in text and "--correlation-length" in text
-    kept, text = generate(0.08)
+    kept, text = generate("--volume-fraction", "0.003", "--correlation-length", "0.0625", "--grid", "16")
+    assert kept < 0.8 * 0.003
+    assert f"node fraction {kept:.4f} against the requested 0.003" in text
+    assert "1.0 grid steps" in text and "--correlation-length" in text
+    kept, text = generate("--dim", "2", "--volume-fraction", "0.3", "--correlation-length", "0.08", "--grid", "64")
     assert kept > 0.8 * 0.3 and "against the requested" not in text
 
 

@@ -440,11 +440,30 @@ def necks(field: np.ndarray, labels: np.ndarray, max_chord: float) -> list[tuple
     Returns:
         per necked component (ascending id): (id, index of its neck's thinnest node, that chord).
     """
+    clusters, joining, chords = _neck_clusters(field, labels, max_chord)
+    found = {}
+    for c in joining:
+        nodes = np.flatnonzero((clusters == c).ravel())
+        best = nodes[np.argmin(chords.ravel()[nodes])]
+        cid = int(labels.ravel()[best])
+        if cid not in found or chords.ravel()[best] < found[cid][2]:
+            found[cid] = (cid, np.unravel_index(best, field.shape), float(chords.ravel()[best]))
+    return [found[c] for c in sorted(found)]
+
+
+def neck_nodes(field: np.ndarray, labels: np.ndarray, max_chord: float) -> np.ndarray:
+    """(*shape) bool: the nodes of the necks that :func:`necks` finds (removing them cuts each neck)."""
+    clusters, joining, _ = _neck_clusters(field, labels, max_chord)
+    return np.isin(clusters, joining) & (clusters > 0)
+
+
+def _neck_clusters(field: np.ndarray, labels: np.ndarray, max_chord: float):
+    """(clusters of thin nodes (*shape) int, ids of those that join two resolved pieces, chords)."""
     own = labels > 0
     chords = np.sort(axis_chords(field, own), axis=0)[field.ndim - 2]
     thin = own & (chords < max_chord)
     if not thin.any():
-        return []
+        return np.zeros(field.shape, np.int32), np.zeros(0, int), chords
     rest, m = label_components(own & ~thin, True)
     resolved = np.bincount(rest.ravel(), minlength=m + 1) >= _MIN_SAMPLES
     resolved[0] = False
@@ -458,14 +477,7 @@ def necks(field: np.ndarray, labels: np.ndarray, max_chord: float) -> list[tuple
             touch.append(np.stack([clusters[at], other[at]], axis=1))
     touch = np.unique(np.concatenate(touch), axis=0)
     cl, n_pieces = np.unique(touch[:, 0], return_counts=True)
-    found = {}
-    for c in cl[n_pieces >= 2]:
-        nodes = np.flatnonzero((clusters == c).ravel())
-        best = nodes[np.argmin(chords.ravel()[nodes])]
-        cid = int(labels.ravel()[best])
-        if cid not in found or chords.ravel()[best] < found[cid][2]:
-            found[cid] = (cid, np.unravel_index(best, field.shape), float(chords.ravel()[best]))
-    return [found[c] for c in sorted(found)]
+    return clusters, cl[n_pieces >= 2], chords
 
 
 def repeated_end_axes(values: np.ndarray) -> list[int]:

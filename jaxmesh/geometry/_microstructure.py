@@ -487,7 +487,7 @@ class Microstructure:
 
     @classmethod
     def from_levelset(cls, values, box=None, periodic=True, order="cubic", *, reach=None,
-                      check_gaps: bool = True, check_necks: bool = True,
+                      check_sizes: bool = True, check_gaps: bool = True, check_necks: bool = True,
                       redistance: bool = False) -> Microstructure:
         """Inclusions = periodic connected components of {phi < 0} of one global field (on a plain
         box, parts that join in the last cell before a far face x = L are one component).
@@ -500,6 +500,8 @@ class Microstructure:
             periodic: the field is periodic (checked: a wrap-around jump of many steps is an error).
             order: "cubic" (C2 B-spline) or "linear" interpolation of each inclusion's window.
             reach: distance up to which dn1/dn2 are exact; None: everywhere if affordable.
+            check_sizes: refuse inclusions the grid does not resolve (fewer than 8 negative samples
+                or thinner than 1.5 steps).
             check_gaps: refuse inclusions less than 0.02 grid step apart (touching at the grid's
                 resolution: the size function would refine the gap down to its floor), also across one
                 grid square or cube (two diagonal samples in different inclusions, no matrix sample
@@ -573,7 +575,7 @@ class Microstructure:
         descriptions = [{"kind": "levelset", "scale": float(scale), "slope_spread": spread,
                          **({"redistanced": True} if redistance else {})} for _ in range(n)]
         ms = cls._from_windows(box, periodic, order, labels, (starts, lengths), windows, fields, r,
-                               descriptions, "from_levelset", check_gaps, check_necks)
+                               descriptions, "from_levelset", check_sizes, check_gaps, check_necks)
         if check_gaps:
             ids, gaps, centres = diagonal_gaps(ms, v, labels)
             min_gap = comp._MIN_GAP_STEPS * min(spacing)
@@ -583,7 +585,7 @@ class Microstructure:
                                                             min_gap, "from_levelset"))
         grid = np.array(values, copy=True)
         build = functools.partial(cls.from_levelset, box=box, periodic=periodic, order=order, reach=reach,
-                                  check_gaps=check_gaps, check_necks=check_necks)
+                                  check_sizes=check_sizes, check_gaps=check_gaps, check_necks=check_necks)
         if periodic:
             ms._rebuild = functools.partial(_from_rolled_grid, functools.partial(build, redistance=redistance), grid)
         if not redistance:
@@ -657,14 +659,14 @@ class Microstructure:
 
     @classmethod
     def _from_windows(cls, box, periodic, order, labels, arcs, windows, fields, r, descriptions, where: str,
-                      check_gaps: bool = True, check_necks: bool = True):
+                      check_sizes: bool = True, check_gaps: bool = True, check_necks: bool = True):
         """Shared tail of from_levelset / from_labels: size and gap checks, dn1/dn2, bounds, JAX phi_fns.
         labels: (grid) component ids; arcs: (starts, lengths) (N, d); fields: window level sets."""
         shape, (starts, lengths) = labels.shape, arcs
         spacing = np.array([L / n for L, n in zip(box, shape)])
         owns = [f < 0 for f in fields]
         stats = [(int(o.sum()), comp.chord_thickness(f, o)) for f, o in zip(fields, owns)]
-        errors = size_errors(stats, descriptions)
+        errors = size_errors(stats, descriptions) if check_sizes else ""
         if errors:
             cut = comp.box_cut_small(stats, labels) if not periodic else []
             if cut:
