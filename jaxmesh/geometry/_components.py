@@ -680,35 +680,29 @@ def diagonal_cells(values: np.ndarray, labels: np.ndarray, periodic: bool, per_p
             np.array([r[1] for r in rows], float).reshape(-1, d))
 
 
-def diagonal_gaps_message(ids, gaps, centres, spacing, min_gap: float, where: str) -> str:
-    """The error for pairs that come closer than min_gap across a grid cell: worst first."""
-    h = float(min(spacing))
-    listed = []
-    for (a, b), g, x in list(zip(ids, gaps, centres))[:6]:
-        what = f"overlap ~ {-g / h:.3f} steps" if g < 0 else f"gap ~ {g / h:.3f} steps"
-        place = tuple(round(float(c * s), 4) for c, s in zip(x, spacing))
-        listed.append(f"inclusions {a} and {b}: {what} near x = {place}")
-    return (f"{where} expected inclusions separated by at least {min_gap / h:.3g} grid step ({min_gap:.4g}), "
-            f"got {len(ids)} pair(s) closer across one grid cell (two diagonal samples inside different "
-            "inclusions, their level sets interpolated between them touching or overlapping, so their surfaces "
-            "would touch or cross): " + "; ".join(listed) + ". Hint: move them apart (raise the field at the cell's "
-            "other samples), merge them (a negative sample there joins them into one inclusion), or sample "
-            "the field on a finer grid.")
-
-
-def close_pairs_message(ids, gaps, nodes, shape, spacing, min_gap: float, where: str,
+def close_pairs_message(ids, gaps, places, spacing, min_gap: float, where: str, *, across_cell: bool = False,
                         hint: str = "move them apart, or merge them into one inclusion, or sample the field on a "
                                     "finer grid") -> str:
-    """The error for `close_pairs` output (non-empty): the worst pairs by id, gap and place."""
+    """The error for pairs of inclusions closer than min_gap: the worst pairs by id, gap and place.
+
+    places: (k, d) grid coordinates (in steps) of each pair's closest place. across_cell: the pairs
+    come from `diagonal_gaps` (within one grid cell) rather than from `close_pairs` (at nodes)."""
     h = float(min(spacing))
     listed = []
-    for (a, b), g, node in list(zip(ids, gaps, nodes))[:6]:
-        x = tuple(round(float(i * s), 4) for i, s in zip(np.unravel_index(node, shape), spacing))
-        what = "overlap" if g < 0 else f"gap ~ {g / h:.3f} steps"
-        listed.append(f"inclusions {a} and {b if b else 'a neighbour'}: {what} near x = {x}")
+    for (a, b), g, x in list(zip(ids, gaps, places))[:6]:
+        place = tuple(round(float(c * s), 4) for c, s in zip(x, spacing))
+        what = f"gap ~ {g / h:.3f} steps" if g >= 0 else f"overlap ~ {-g / h:.3f} steps" if across_cell else "overlap"
+        listed.append(f"inclusions {a} and {b if b else 'a neighbour'}: {what} near x = {place}")
+    why = ("closer across one grid cell (two diagonal samples inside different inclusions, their level sets "
+           "interpolated between them touching or overlapping, so their surfaces would touch or cross)"
+           if across_cell else "closer (touching or overlapping at the grid's resolution)")
     return (f"{where} expected inclusions separated by at least {min_gap / h:.3g} grid step ({min_gap:.4g}), "
-            f"got {len(ids)} pair(s) closer (touching or overlapping at the grid's resolution): "
-            + "; ".join(listed) + f". Hint: {hint}.")
+            f"got {len(ids)} pair(s) {why}: " + "; ".join(listed) + f". Hint: {hint}.")
+
+
+def node_places(nodes, shape) -> np.ndarray:
+    """(k, d) grid coordinates of flat node indices (for close_pairs_message)."""
+    return np.stack(np.unravel_index(np.asarray(nodes, np.int64), shape), axis=-1)
 
 
 def check_field(values, where: str, labels: bool = False) -> np.ndarray:

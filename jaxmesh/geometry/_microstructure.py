@@ -581,8 +581,10 @@ class Microstructure:
             min_gap = comp._MIN_GAP_STEPS * min(spacing)
             close = gaps < min_gap
             if close.any():
-                raise ValueError(comp.diagonal_gaps_message(ids[close], gaps[close], centres[close], spacing,
-                                                            min_gap, "from_levelset"))
+                raise ValueError(comp.close_pairs_message(
+                    ids[close], gaps[close], centres[close], spacing, min_gap, "from_levelset", across_cell=True,
+                    hint="move them apart (raise the field at the cell's other samples), merge them (a negative "
+                         "sample there joins them into one inclusion), or sample the field on a finer grid"))
         grid = np.array(values, copy=True)
         build = functools.partial(cls.from_levelset, box=box, periodic=periodic, order=order, reach=reach,
                                   check_sizes=check_sizes, check_gaps=check_gaps, check_necks=check_necks)
@@ -697,7 +699,8 @@ class Microstructure:
             min_gap = comp._MIN_GAP_STEPS * min(spacing)
             ids, gaps, nodes = comp.close_pairs(dn1, dn2, nearest, labels, spacing, min_gap, periodic)
             if len(ids):
-                raise ValueError(comp.close_pairs_message(ids, gaps, nodes, shape, spacing, min_gap, where))
+                raise ValueError(comp.close_pairs_message(ids, gaps, comp.node_places(nodes, shape), spacing,
+                                                          min_gap, where))
         inclusions = []
         for c, (win, W, own, desc, stat) in enumerate(zip(windows, fields, owns, descriptions, stats), 1):
             if not periodic:  # the level set goes on beyond the box as it meets it, no crease
@@ -817,9 +820,9 @@ def _check_gaps(dn1, dn2, nearest, labels, spacing, n: int, periodic: bool):
     missing = sorted(set(range(1, n + 1)) - set(np.unique(labels[labels > 0]).tolist()))
     ids, gaps, nodes = comp.close_pairs(dn1, dn2, nearest, labels, spacing, h * (1 - 1e-9), periodic)
     if len(ids):
-        raise ValueError(comp.close_pairs_message(ids, gaps, nodes, labels.shape, spacing, h, "from_functions",
-                                                  "move them apart (e.g. random_inclusions(..., min_gap=...)) or "
-                                                  "refine grid_shape"))
+        raise ValueError(comp.close_pairs_message(ids, gaps, comp.node_places(nodes, labels.shape), spacing, h,
+                                                  "from_functions", hint="move them apart (e.g. random_inclusions("
+                                                  "..., min_gap=...)) or refine grid_shape"))
     if missing:
         raise ValueError(f"from_functions expected every inclusion to own grid nodes, got {missing} hidden "
                          "inside others. Hint: remove nested or duplicated inclusions.")
