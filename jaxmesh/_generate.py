@@ -652,7 +652,7 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
     step are cut (their thin nodes become matrix), and of two components less than a quarter step
     apart, also across a grid cell, the smaller is dropped (the mesher refuses 0.02 steps as touching,
     and would refine such gaps far). The level u is then moved until the node fraction is
-    `volume_fraction` to within 0.002, or the nearest of six tries (a drop makes it jump). phi is the field
+    `volume_fraction` to within 0.005, or the nearest of six tries (a drop makes it jump). phi is the field
     divided by its gradient norm at nodes next to the interface (a first-order distance), extended
     elsewhere by the periodic Euclidean distance transform to those nodes.
 
@@ -701,7 +701,7 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
 
 
 _LEVEL_ROUNDS = 6
-_FRACTION_TOL = 0.002  # node fraction; the raw quantile hits it exactly
+_FRACTION_TOL = 0.005  # node fraction, as random_inclusions' default tol; the raw quantile hits it exactly
 _MAX_DROP_ROUNDS = 8
 _SEPARATION_STEPS = 0.25  # closest components kept, in grid steps
 

@@ -385,9 +385,9 @@ def test_excursion_set_drops_components_touching_at_the_grid_resolution(seed, fr
     assert seen[0].any() and not seen[-1].any()  # the raw set had a touching pair; the output has none
     ms = Microstructure.from_levelset(phi)
     assert len(ms.inclusions) == label_components(phi < 0, True)[1]
-    # seed 7 also loses a component across a grid square, and the fraction jumps by 0.01 at the level
-    # where a dropped component comes or goes: the nearest of the generator's tries is 0.0047 off
-    assert abs(fraction - (phi < 0).mean()) < 0.005
+    # seed 7 also loses a component across a grid square (0.011 of the fraction at the first level), and
+    # the fraction jumps by 0.01 where a dropped component comes or goes; the generator's tolerance: 0.005
+    assert abs(fraction - (phi < 0).mean()) <= 0.005
 
 
 def test_excursion_set_drops_the_smaller_of_two_components_meeting_across_a_grid_square():
@@ -438,7 +438,7 @@ def test_excursion_set_cuts_necks_below_a_grid_step_and_keeps_the_fraction(seed,
     assert (first[cut] >= 1 / n).all()  # the neck's nodes: matrix, a step outside
     ms = Microstructure.from_levelset(phi)  # loads: necks below a step are refused by default
     assert not any("neck_steps" in inc.description for inc in ms.inclusions)
-    assert abs((phi < 0).mean() - 0.1) <= 0.002
+    assert abs((phi < 0).mean() - 0.1) <= 0.005
 
 
 def test_excursion_set_with_nothing_resolved_is_refused_clearly():
