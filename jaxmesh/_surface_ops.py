@@ -86,8 +86,10 @@ def refine(points: np.ndarray, tris: np.ndarray, split: np.ndarray):
 
 
 def _normals(p):
+    """Unit normals; 0 for a flat triangle. The truss relaxation passes float32 points, in which
+    1e-300 is 0: a flat candidate of flip_edges gave 0 / 0 (the RuntimeWarning of the surfaces)."""
     nrm = cross3(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    return nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    return nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), np.finfo(nrm.dtype).tiny)
 
 
 def flip_edges(
