@@ -680,11 +680,11 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
     field = gaussian_random_field(box, shape, correlation_length, seed)
     target, best = volume_fraction, None
     tol = min(_FRACTION_TOL, _FRACTION_RTOL * target)
-    lo, hi, level = 0.0, 1.0, target
+    lo, hi, level, bracketed = 0.0, 1.0, target, False
     for _ in range(_LEVEL_ROUNDS):
         try:
             phi = _admissible_excursion(field - np.quantile(field, level), box, correlation_length)
-        except ValueError as error:  # nothing admissible at this level: try a higher one
+        except _NothingAdmissible as error:  # try a higher level
             phi, fraction, failure = None, 0.0, error
         else:
             fraction = float((phi < 0).mean())
@@ -694,9 +694,12 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
             break
         # repairs only remove nodes, so the fraction is at most the level; it jumps where a drop comes
         # or goes, so bracket the level and bisect once it is bracketed
-        lo, hi = (level, hi) if fraction < target else (lo, level)
-        step = level + target - fraction
-        level = step if lo < step < hi and hi == 1.0 else 0.5 * (lo + hi)
+        if fraction < target:
+            lo = level
+        else:
+            hi, bracketed = level, True
+        secant = level + target - fraction
+        level = secant if lo < secant < hi and not bracketed else 0.5 * (lo + hi)
     if best is None:
         raise failure
     return best[0]
@@ -706,6 +709,10 @@ _LEVEL_ROUNDS = 6
 _FRACTION_TOL, _FRACTION_RTOL = 0.005, 0.05  # node fraction (random_inclusions' default tol), 5 % of small ones
 _MAX_DROP_ROUNDS = 8
 _SEPARATION_STEPS = 0.25  # closest components kept, in grid steps
+
+
+class _NothingAdmissible(ValueError):
+    """No admissible excursion set at one level: `excursion_set` tries another before it gives up."""
 
 
 def _admissible_excursion(g: np.ndarray, box: np.ndarray, correlation_length: float) -> np.ndarray:
@@ -724,7 +731,7 @@ def _admissible_excursion(g: np.ndarray, box: np.ndarray, correlation_length: fl
             return phi
         inside &= ~(dropped | necks)
         cut |= necks
-    raise ValueError(
+    raise _NothingAdmissible(
         f"excursion_set: no admissible excursion set at this resolution (correlation_length "
         f"{correlation_length:g}, grid step {h.max():.4g}): "
         + ("every component was too small, too thin or too close to another" if not inside.any() else
