@@ -14,6 +14,7 @@ from jaxmesh._cli import main
 from jaxmesh._generate import gaussian_random_field
 from jaxmesh._quality import signed_volumes
 from jaxmesh._sizing import interface_sources
+from jaxmesh.geometry import _components as comp
 
 BOX = (1.0, 1.0, 1.0)
 # centred; cut by a face, by an edge (two faces), by a corner (three faces)
@@ -179,6 +180,26 @@ def test_grid_levelset_goes_on_linearly_beyond_the_samples(order):
     row = np.stack([0.5 + np.linspace(-1.0, 1.5, 26) / n, np.full(26, 0.5), np.linspace(-1.0, 1.5, 26) / n], 1)
     row[:, 0] -= 0.05  # off the zero set, inside the slab's straight part: phi = -0.05 / sqrt(2)
     assert np.allclose(ms.phi(row), -0.05 / np.sqrt(2.0), atol=0.05 / n, rtol=0)  # replicated: 0.7 steps
+
+
+def test_the_continuation_beyond_a_box_edge_has_no_product_term():
+    """Beyond an edge or corner each ghost node is its nearest grid node plus that node's outward
+    slopes times the steps beyond. Continued axis after axis it also had k_x k_y times the mixed
+    difference, which turns a field that is positive with outward slopes positive at the edge
+    negative again two steps beyond it: a phantom lobe, on which the Newton projection of a
+    plain-box surface stalled (`benchmarks/sweep_shapes.py`'s numpy_grf_s303, redistanced)."""
+    field = np.full((6, 6), 9.0)  # a window of a 4 x 4 grid; its ghost nodes are overwritten
+    field[2, 2], field[3, 2], field[2, 3], field[3, 3] = -2.0, 0.5, 0.5, 1.0
+    ghosts = comp.extrapolate_beyond_domain(field, (0, 0), (4, 4))
+    k = np.arange(1, 3)
+    np.testing.assert_allclose(ghosts[3 + k[:, None], 3 + k[None, :]], 1.0 + 0.5 * k[:, None] + 0.5 * k[None, :])
+    np.testing.assert_allclose(ghosts[3 + k, 2], 0.5 + 2.5 * k)  # beyond one plane only: as before
+    assert (ghosts[3:, 3:] > 0).all()  # axis after axis: -5 at two steps beyond both planes
+    x = np.arange(-2, 7)
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    linear = 1.5 * X - 0.7 * Y + 0.3 * Z + 2.0
+    given = np.where((np.abs(np.stack([X, Y, Z]) - 2) > 2).any(0), 99.0, linear)  # nodes 0..4 are the grid
+    np.testing.assert_allclose(comp.extrapolate_beyond_domain(given, (-2, -2, -2), (5, 5, 5)), linear, atol=1e-12)
 
 
 def test_bounds_hold_the_zero_set_in_the_last_cell():

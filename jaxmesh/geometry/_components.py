@@ -164,29 +164,36 @@ def frame_indices(origin, shape, grid_shape, periodic: bool) -> list[np.ndarray]
 
 
 def extrapolate_beyond_domain(field: np.ndarray, origin, grid_shape) -> np.ndarray:
-    """A window field whose nodes beyond a non-periodic grid are linear continuations of the last
-    two nodes inside (ghost = border + k (border - next inner)), axis by axis.
+    """A window field whose nodes beyond a non-periodic grid are linear continuations from the
+    nearest grid node: ghost = border + sum over the axes it lies beyond of k (border - next inner).
 
     Windows take replicated border nodes there (`frame_indices`); a B-spline through them bends
     the level set to meet the box plane at a right angle within the last cell (a crease: curvature
     radii below a grid step, and surfaces that fold where a trace passes near a box edge). A linear
-    field is reproduced exactly up to the plane and beyond it.
+    field is reproduced exactly up to the plane and beyond it. Beyond an edge or corner the slopes are
+    the border node's own, with no product term k_x k_z (a continuation axis after axis has one,
+    and it can turn a positive field negative again far beyond the edge: a phantom lobe).
     """
-    out = np.array(field, dtype=float, copy=True)
+    out = np.array(field, dtype=float)
+    nearest, steps, inward = [], [], []
     for a, (o, n) in enumerate(zip(origin, grid_shape)):
-        if n < 2:
-            continue
-        u = int(o) + np.arange(out.shape[a])  # global node index along the axis
+        w = out.shape[a]
+        u = int(o) + np.arange(w)  # global node index along the axis
         first, last = -int(o), int(n) - 1 - int(o)  # window indices of grid nodes 0 and n - 1
-        view = np.moveaxis(out, a, 0)  # a view: assignments write into out
-        for ghosts, border, inner, sign in ((np.flatnonzero(u < 0), first, first + 1, -1),
-                                            (np.flatnonzero(u >= n), last, last - 1, 1)):
-            if not len(ghosts) or not (0 <= border < out.shape[a] and 0 <= inner < out.shape[a]):
-                continue
-            k = sign * (ghosts - border)  # steps beyond the border node, >= 1
-            slope = view[border] - view[inner]
-            view[ghosts] = view[border][None] + k.reshape((-1,) + (1,) * (out.ndim - 1)) * slope[None]
-    return out
+        c, k, c_in = np.arange(w), np.zeros(w), np.arange(w)
+        for ghosts, border, inner in ((u < 0, first, first + 1), (u >= n, last, last - 1)):
+            if n >= 2 and ghosts.any() and 0 <= border < w and 0 <= inner < w:
+                c[ghosts], k[ghosts], c_in[ghosts] = border, np.abs(np.flatnonzero(ghosts) - border), inner
+        nearest.append(c)
+        steps.append(k)
+        inward.append(c_in)
+    border_values = out[np.ix_(*nearest)]
+    result = border_values.copy()
+    for a, k in enumerate(steps):
+        if k.any():
+            inner_values = out[np.ix_(*(inward[a] if b == a else c for b, c in enumerate(nearest)))]
+            result += k.reshape((-1,) + (1,) * (out.ndim - 1 - a)) * (border_values - inner_values)
+    return result
 
 
 def within_nodes(origin, shape, first, last) -> np.ndarray:
