@@ -448,6 +448,32 @@ def test_excursion_set_with_nothing_resolved_is_refused_clearly():
         excursion_set((1.0, 1.0, 1.0), (16, 16, 16), correlation_length=1 / 16, volume_fraction=0.001, seed=1)
 
 
+def test_excursion_set_tries_another_level_only_when_nothing_is_admissible(monkeypatch):
+    """Another level is tried when a level leaves nothing admissible; any other error (a loader's, on
+    a field it refuses) stops the generator at once, not swallowed by a later level that succeeds."""
+    calls = []
+
+    def refuse(g, box, correlation_length):
+        calls.append(g)
+        raise ValueError("from_levelset: something else")
+
+    monkeypatch.setattr(gen, "_admissible_excursion", refuse)
+    with pytest.raises(ValueError, match="something else"):
+        excursion_set((1.0, 1.0), (32, 32), correlation_length=0.1, volume_fraction=0.3, seed=1)
+    assert len(calls) == 1
+    calls.clear()
+
+    def nothing(g, box, correlation_length):
+        calls.append(g)
+        raise gen._NothingAdmissible("excursion_set: no admissible excursion set at this resolution")
+
+    monkeypatch.setattr(gen, "_admissible_excursion", nothing)
+    with pytest.raises(ValueError, match="no admissible excursion set"):
+        excursion_set((1.0, 1.0), (32, 32), correlation_length=0.1, volume_fraction=0.3, seed=1)
+    assert len(calls) == gen._LEVEL_ROUNDS
+    assert [float((g < 0).mean()) for g in calls] == sorted(float((g < 0).mean()) for g in calls)  # levels go up
+
+
 @pytest.mark.parametrize(
     "kwargs",
     [dict(correlation_length=-1.0, volume_fraction=0.3), dict(correlation_length=0.1, volume_fraction=1.5),
