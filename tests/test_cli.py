@@ -176,8 +176,8 @@ def test_generate_grf_names_the_inclusions_that_percolate(tmp_path, capsys):
 
 
 def test_generate_grf_says_when_dropped_components_take_the_fraction_down(tmp_path, capsys):
-    """At l = one grid step (16^3) and 0.3 % the components are specks of a few nodes, and no threshold
-    the generator tries comes within 0.8 of the fraction after dropping them: generate says so and why;
+    """At l = one grid step (16^3) and 0.3 % the components are specks of a few nodes, and after dropping them
+    no threshold the generator tries keeps 0.8 of the fraction: generate says so and why;
     l = 0.08 on a 64^2 grid keeps the fraction and says nothing."""
 
     def generate(*args):
