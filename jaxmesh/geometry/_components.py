@@ -10,7 +10,6 @@ the inclusion. The validation of raw inputs (fields, labels, boxes, points) live
 
 from __future__ import annotations
 
-import functools
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -165,19 +164,17 @@ def frame_indices(origin, shape, grid_shape, periodic: bool) -> list[np.ndarray]
 
 
 def extrapolate_beyond_domain(field: np.ndarray, origin, grid_shape) -> np.ndarray:
-    """A window field whose nodes beyond a non-periodic grid continue it linearly: one step beyond
-    the grid, the multilinear continuation of the nearest grid cell (axis after axis); further out,
-    that plus the nearest grid node's own slopes, k - 1 times on each axis it lies k > 1 steps beyond.
+    """A window field whose nodes beyond a non-periodic grid are linear continuations from the
+    nearest grid node: ghost = border + sum over the axes it lies beyond of k (border - next inner).
 
     Windows take replicated border nodes there (`frame_indices`); a B-spline through them bends
     the level set to meet the box plane at a right angle within the last cell (a crease: curvature
     radii below a grid step, and surfaces that fold where a trace passes near a box edge). A linear
-    field is reproduced exactly up to the plane and beyond it, a multilinear one up to a step beyond.
-    Beyond an edge the mixed term stays the corner cell's one step's worth: axis after axis all the
-    way it grows as k_x k_z and can turn a positive field negative again far beyond the edge (a
-    phantom lobe), and without it an interface meeting the edge within the last cell moves.
+    field is reproduced exactly up to the plane and beyond it. Beyond an edge or corner the slopes are
+    the border node's own, with no product term k_x k_z (a continuation axis after axis has one,
+    and it can turn a positive field negative again far beyond the edge: a phantom lobe).
     """
-    out = np.asarray(field, dtype=float)
+    out = np.array(field, dtype=float)
     nearest, steps, inward = [], [], []
     for a, (o, n) in enumerate(zip(origin, grid_shape)):
         w = out.shape[a]
@@ -191,20 +188,11 @@ def extrapolate_beyond_domain(field: np.ndarray, origin, grid_shape) -> np.ndarr
         steps.append(k)
         inward.append(c_in)
     border_values = out[np.ix_(*nearest)]
-    # Within the first ghost layer (k <= 1 on every axis): the multilinear continuation, axis after axis.
-    first_layer = [np.minimum(k, 1.0) for k in steps]
-    result = np.zeros_like(border_values)
-    for from_inner in itertools.product((False, True), repeat=out.ndim):
-        if any(f and not w.any() for f, w in zip(from_inner, first_layer)):
-            continue
-        weights = [-w if f else 1.0 + w for f, w in zip(from_inner, first_layer)]
-        nodes = [inward[a] if f else c for a, (f, c) in enumerate(zip(from_inner, nearest))]
-        result += functools.reduce(np.multiply, np.ix_(*weights)) * out[np.ix_(*nodes)]
-    # Further out: the border node's own slopes only.
-    for a, (k, w) in enumerate(zip(steps, first_layer)):
-        if (k > w).any():
+    result = border_values.copy()
+    for a, k in enumerate(steps):
+        if k.any():
             inner_values = out[np.ix_(*(inward[a] if b == a else c for b, c in enumerate(nearest)))]
-            result += (k - w).reshape((-1,) + (1,) * (out.ndim - 1 - a)) * (border_values - inner_values)
+            result += k.reshape((-1,) + (1,) * (out.ndim - 1 - a)) * (border_values - inner_values)
     return result
 
 
