@@ -174,7 +174,7 @@ def extrapolate_beyond_domain(field: np.ndarray, origin, grid_shape) -> np.ndarr
     the border node's own, with no product term k_x k_z (a continuation axis after axis has one,
     and it can turn a positive field negative again far beyond the edge: a phantom lobe).
     """
-    out = np.array(field, dtype=float)
+    out = np.asarray(field, dtype=float)  # read only
     nearest, steps, inward = [], [], []
     for a, (o, n) in enumerate(zip(origin, grid_shape)):
         w = out.shape[a]
