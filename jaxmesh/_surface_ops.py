@@ -265,6 +265,88 @@ def straddling(points: np.ndarray, tris: np.ndarray, box) -> np.ndarray:
     return ((p < lo) | (p > hi)).any(axis=(1, 2))
 
 
+def wedge_nodes(points: np.ndarray, tris: np.ndarray, box, max_height: np.ndarray, max_slope: float):
+    """Nodes that make a thin wedge with a box plane, on an open surface inside a plain box.
+
+    A triangle with two vertices on one box plane and its third node V off it rises from the plane at
+    the slope height / run (height: V's distance to the plane; run: the distance, in the plane, from
+    V's foot to the line through the two plane vertices). Under max_slope the matrix or inclusion
+    layer between the triangle and the plane is a wedge whose tets cannot be better than that angle.
+
+    Args:
+        points: (n, 3), plane coordinates exactly 0 or L. tris: (t, 3). max_height: (n,) per node.
+    Returns:
+        (nodes, axes, values, heights, chords (k, 3): the point of the trace chord's line nearest the
+        node's foot), one row per node (its lowest slope), the lowest slope first.
+    """
+    L = np.asarray(box, dtype=float)
+    rows = []
+    for a in range(3):
+        for value in (0.0, float(L[a])):
+            on = points[tris, a] == value  # (t, 3)
+            pick = np.flatnonzero(on.sum(axis=1) == 2)
+            if not len(pick):
+                continue
+            k = np.argmin(on[pick], axis=1)  # the vertex off the plane
+            t = tris[pick]
+            v, p, q = t[np.arange(len(t)), k], t[np.arange(len(t)), (k + 1) % 3], t[np.arange(len(t)), (k + 2) % 3]
+            foot = points[v].copy()
+            foot[:, a] = value
+            line = points[q] - points[p]
+            along = np.einsum("ij,ij->i", foot - points[p], line) / np.maximum(np.einsum("ij,ij->i", line, line), 1e-300)
+            run = np.linalg.norm(foot - points[p] - along[:, None] * line, axis=1)
+            height = np.abs(points[v, a] - value)
+            ok = (height < max_height[v]) & (height < max_slope * run)
+            chord = points[p] + along[:, None] * line  # the foot's nearest point on the trace chord's line
+            rows += [(height[i] / run[i], int(v[i]), a, value, height[i], tuple(chord[i])) for i in np.flatnonzero(ok)]
+    rows.sort()
+    seen, out = set(), []
+    for slope, v, a, value, height, chord in rows:
+        if v not in seen:
+            seen.add(v)
+            out.append((v, a, value, height, chord))
+    if not out:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros((0, 3))
+    v, a, value, height, chord = (np.asarray(c) for c in zip(*out))
+    return v.astype(np.int64), a.astype(np.int64), value.astype(float), height.astype(float), chord.astype(float)
+
+
+def flatten_wedge(points: np.ndarray, tris: np.ndarray, alive: np.ndarray, node: int, target: np.ndarray,
+                  axis: int, value: float, min_cos: float = 0.5, min_area: float = 0.2) -> np.ndarray | None:
+    """Move `node` to `target` (on the plane x_axis = value) and drop its triangles then flat in that plane.
+
+    All of the node's triangles may become flat (a lens thinner than the wedge: it goes, node and
+    all). Refused (None) when no triangle becomes flat, when nothing of the surface would be left,
+    when a kept triangle of the node turns by more than acos(min_cos) or keeps less than min_area of
+    its area, or when a node of a dropped triangle would be left with other than zero or two
+    boundary edges (the trace must stay a set of simple loops).
+
+    Returns:
+        the (t,) bool alive mask after the change (points[node] is then set by the caller), or None.
+    """
+    mine = np.flatnonzero(alive & (tris == node).any(axis=1))
+    moved = points.copy()
+    moved[node] = target
+    flat = mine[(moved[tris[mine], axis] == value).all(axis=1)]
+    kept = np.setdiff1d(mine, flat)
+    if not len(flat) or np.count_nonzero(alive) == len(flat):
+        return None
+    before = cross3(*(points[tris[kept, i]] - points[tris[kept, 0]] for i in (1, 2)))
+    after = cross3(*(moved[tris[kept, i]] - moved[tris[kept, 0]] for i in (1, 2)))
+    nb, na = np.linalg.norm(before, axis=1), np.linalg.norm(after, axis=1)
+    if (na < min_area * nb).any() or (np.einsum("ij,ij->i", before, after) < min_cos * nb * na).any():
+        return None
+    new_alive = alive.copy()
+    new_alive[flat] = False
+    for u in np.unique(tris[flat]):
+        around = tris[new_alive & (tris == u).any(axis=1)]
+        others = around[around != u]
+        boundary = np.count_nonzero(np.bincount(others) == 1) if len(others) else 0
+        if boundary not in (0, 2):
+            return None
+    return new_alive
+
+
 def in_one_box_plane(points, on_plane, tris) -> np.ndarray:
     """(t,) bool: triangles whose three vertices lie on one box plane (same axis, same value).
     on_plane: (n, 3) bool, coordinate a of the node held exactly on a box plane."""
