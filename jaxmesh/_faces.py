@@ -430,17 +430,10 @@ def _assemble(microstructure, surfaces: dict, h_fn, config: SurfaceConfig, t0: f
         points=reg.array(), triangles=np.vstack(tris), sides=np.vstack(sides), kind=np.concatenate(kinds),
         node_inclusion=np.asarray(reg.inclusion, np.int64), box=box,
         periodic_pairs=_periodic_pairs(reg, box) if periodic else {},
-        metadata={"n_inclusions": len(microstructure.inclusions), "time_interfaces": t1 - t0, "time_faces": t2 - t1,
-                  "flattened_wedges": _flattened_wedges(surfaces)},
+        metadata={"n_inclusions": len(microstructure.inclusions), "time_interfaces": t1 - t0, "time_faces": t2 - t1},
         periodic=periodic,
     )
     return mesh
-
-
-def _flattened_wedges(surfaces: dict) -> dict:
-    """Per inclusion with any: the thin wedges flattened onto a plain box's planes (`flatten_wedges`)."""
-    return {k: dict(out["flattened_wedges"]) for k, out in surfaces.items()
-            if out.get("flattened_wedges", {}).get("count")}
 
 
 def _raise_intersections(microstructure, mesh: SurfaceMesh, bad: np.ndarray, resampled: dict):

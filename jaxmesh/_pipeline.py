@@ -468,11 +468,6 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
     resampled = surface.metadata.get("resampled_inclusions") or {}
     note = (f"; inclusions {sorted(resampled)} sampled again (their triangles crossed, or their traces did not "
             "fit a box face)" if resampled else "")
-    wedges = surface.metadata.get("flattened_wedges") or {}
-    if wedges:
-        note += (f"; {sum(w['count'] for w in wedges.values())} thin wedge node(s) of inclusions {sorted(wedges)} "
-                 f"flattened onto the box planes (layers at most {max(w['height'] for w in wedges.values()):.2g} "
-                 "thick dropped)")
     t = stage("surfaces", t, f"{surface.n_points} nodes, {surface.n_triangles} triangles{note}")
 
     interior = _interior_nodes(ms, h_np, config)
@@ -485,8 +480,6 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
     mesh.metadata.setdefault("counts", {}).update(
         {"surface_points": surface.n_points, "surface_triangles": surface.n_triangles}
     )
-    if wedges:
-        mesh.metadata["flattened_wedges"] = {str(k): w for k, w in wedges.items()}
     return mesh, t
 
 

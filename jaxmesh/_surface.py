@@ -26,7 +26,6 @@ from ._surface_ops import (
     TraceMismatch,
     collapse_edges,
     cut_plane,
-    flatten_wedge,
     flip_edges,
     half_edges,
     match_opposite_traces,
@@ -35,7 +34,6 @@ from ._surface_ops import (
     straddling,
     touching_plane_nodes,
     triangle_cells,
-    wedge_nodes,
 )
 from ._truss import TrussConfig, make_constraints, phi_and_grad, relax
 from ._truss._constraints import newton_damping
@@ -574,84 +572,6 @@ def inside_pieces(points, tris, on_plane, box):
     return p, inv.reshape(-1, 3).astype(np.int64), src
 
 
-_WEDGE_SLOPE = 0.15  # about 8.5 degrees: a thinner wedge against a plain box's plane is flattened onto it
-_WEDGE_HEIGHT = 0.5  # fraction of h: the thickest layer that flattening may drop
-
-
-def flatten_wedges(points, tris, phi_fn, h_fn, box, config: SurfaceConfig, passes: int = 50):
-    """Flatten the thin wedges an open surface inside a plain box makes with the box planes.
-
-    Where the level set meets a box plane at a shallow angle, a triangle with two trace nodes rises
-    at that angle: the layer under it is a wedge thinner than the input resolves, whose tets cannot
-    beat the angle, and the volume recovery never closes it (refining both sides ever closer to the
-    plane). A node of such a triangle within _WEDGE_HEIGHT * h of the plane whose slope is below
-    _WEDGE_SLOPE moves onto the trace (the root of phi in the plane between its foot and the
-    triangle's trace chord, else the trace point nearest its foot) and the triangles then flat in
-    the plane are dropped: the trace goes
-    through the node instead, and the layer between the old triangles and the plane (at most that
-    height thick) is lost. Repeated, this peels a lens thinner than that from its rim.
-
-    Returns:
-        (points, tris, source (m,) old index of each kept node, count, largest height flattened).
-    """
-    points, alive = points.copy(), np.ones(len(tris), bool)
-    count, largest = 0, 0.0
-    for _ in range(passes):
-        cap = _WEDGE_HEIGHT * evaluate_size(h_fn, points)
-        nodes, axes, values, heights, chords = wedge_nodes(points, tris[alive], box, cap, _WEDGE_SLOPE)
-        if not len(nodes):
-            break
-        k = np.arange(len(nodes))
-        foot = points[nodes].copy()
-        foot[k, axes] = values
-        # two landing points on the trace: the root between the foot and the chord (the node moves
-        # across the wedge), else the nearest one (Newton within the plane: a lens's rim)
-        along, found = trace_roots(phi_fn, foot, foot + 1.5 * (chords - foot))
-        along[k, axes] = values
-        locked = (points[nodes] == 0.0) | (points[nodes] == np.asarray(box, float))
-        locked[k, axes] = True
-        nearest, phi, _ = project(phi_fn, foot, locked, config.newton_steps)
-        near_ok = (np.abs(phi) < 1e-9 * cap[nodes]) & (
-            np.linalg.norm(nearest - foot, axis=1) < 2.0 * np.linalg.norm(chords - foot, axis=1))
-        done = 0
-        for i in k:
-            for target, ok in ((along[i], found[i]), (nearest[i], near_ok[i])):
-                after = flatten_wedge(points, tris, alive, int(nodes[i]), target, int(axes[i]), float(values[i])) \
-                    if ok else None
-                if after is not None:
-                    alive, points[nodes[i]] = after, target
-                    done += 1
-                    largest = max(largest, float(heights[i]))
-                    break
-        count += done
-        if not done:
-            break
-    src, inv = np.unique(tris[alive].reshape(-1), return_inverse=True)
-    return points[src], inv.reshape(-1, 3).astype(np.int64), src, count, largest
-
-
-def trace_roots(phi_fn, start: np.ndarray, end: np.ndarray, iterations: int = 60):
-    """Roots of phi on the segments start -> end (k, 3) each by bisection, where phi changes sign.
-
-    Returns:
-        (points (k, 3), found (k,) bool).
-    """
-    def phi(x):
-        return np.asarray(phi_fn(jnp.asarray(x)), dtype=float).reshape(-1)
-
-    lo, hi = np.zeros(len(start)), np.ones(len(start))
-    f_lo, f_hi = phi(start), phi(end)
-    found = np.sign(f_lo) * np.sign(f_hi) < 0
-    for _ in range(iterations):
-        mid = 0.5 * (lo + hi)
-        f_mid = phi(start + mid[:, None] * (end - start))
-        left = np.sign(f_mid) == np.sign(f_lo)
-        lo, f_lo = np.where(left, mid, lo), np.where(left, f_mid, f_lo)
-        hi = np.where(left, hi, mid)
-    t = np.where(np.abs(f_lo) <= np.abs(phi(start + hi[:, None] * (end - start))), lo, hi)
-    return start + t[:, None] * (end - start), found
-
-
 _MC_ATTEMPTS = 3  # marching-cubes grids tried per inclusion, each up to 4x finer
 _MIN_CAP_DEPTH = 0.01  # fraction of h: shallower caps beyond a box plane are not meshed
 
@@ -780,9 +700,4 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
     else:
         wp, wt, src = inside_pieces(pts, tris, on_plane, box)
     refuse_nodes_off_the_level_set(pts[np.unique(src)], phi_fn, box, inclusion.id, step)  # the nodes kept
-    wedges = {"count": 0, "height": 0.0}
-    if not periodic:
-        wp, wt, kept, wedges["count"], wedges["height"] = flatten_wedges(wp, wt, phi_fn, h_fn, box, config)
-        src = src[kept]
-    return {"points": wp, "triangles": wt, "source": src, "unwrapped_points": pts, "unwrapped_triangles": tris,
-            "flattened_wedges": wedges}
+    return {"points": wp, "triangles": wt, "source": src, "unwrapped_points": pts, "unwrapped_triangles": tris}

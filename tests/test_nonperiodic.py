@@ -336,37 +336,3 @@ def test_a_part_the_box_cuts_too_thin_is_refused_as_touching_the_box():
     with pytest.raises(ValueError, match="negative samples") as err:
         Microstructure.from_levelset(speck, periodic=False)
     assert "touches the box" not in str(err.value)
-
-
-def _wedge_fan():
-    """An open fan around node 4 at (0.5, 0.5, 0.02): its triangle (0, 1, 4) rises from the trace
-    0-1 on z = 0 at slope 0.04; nodes 2 and 3 stand well off the plane."""
-    points = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.4], [0.0, 1.0, 0.4], [0.5, 0.5, 0.02]])
-    tris = np.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
-    return points, tris
-
-
-def test_a_thin_wedge_against_a_box_plane_is_found_and_flattened():
-    from jaxmesh._surface_ops import flatten_wedge, wedge_nodes
-
-    points, tris = _wedge_fan()
-    nodes, axes, values, heights, chords = wedge_nodes(points, tris, BOX, np.full(5, 0.1), 0.15)
-    assert nodes.tolist() == [4] and axes.tolist() == [2] and values.tolist() == [0.0]
-    assert heights[0] == pytest.approx(0.02) and chords[0] == pytest.approx([0.5, 0.0, 0.0])
-    assert not len(wedge_nodes(points, tris, BOX, np.full(5, 0.1), 0.03)[0])  # steeper than the bound
-    assert not len(wedge_nodes(points, tris, BOX, np.full(5, 0.01), 0.15)[0])  # higher than the cap
-    alive = flatten_wedge(points, tris, np.ones(4, bool), 4, np.array([0.5, 0.05, 0.0]), 2, 0.0)
-    assert alive.tolist() == [False, True, True, True]  # the trace now runs 0-4-1
-
-
-def test_flattening_a_wedge_is_refused_where_it_would_pinch_or_fold_the_trace():
-    from jaxmesh._surface_ops import flatten_wedge
-
-    points, tris = _wedge_fan()
-    # a target beyond the edge 1-2 turns (1, 2, 4) over
-    assert flatten_wedge(points, tris, np.ones(4, bool), 4, np.array([1.5, 0.5, 0.0]), 2, 0.0) is None
-    pinched = np.vstack([tris, [[1, 0, 5]]])  # a second triangle on the trace edge's far side
-    far = np.vstack([points, [[0.5, -0.5, 0.3]]])
-    assert flatten_wedge(far, pinched, np.ones(5, bool), 4, np.array([0.5, 0.05, 0.0]), 2, 0.0) is None
-    lone = np.array([[0, 1, 4]])  # a lens of one triangle: nothing would be left
-    assert flatten_wedge(points, lone, np.ones(1, bool), 4, np.array([0.5, 0.05, 0.0]), 2, 0.0) is None
