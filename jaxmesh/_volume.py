@@ -298,7 +298,8 @@ def _missing_place(surface: SurfaceMesh, miss: np.ndarray) -> str:
 
     Beside a box edge (the second-nearest box plane within ten triangle sizes), or against one box
     plane (the interface nearly tangent to it: the nodes that splits add there come ever closer to the
-    plane, a plain-box excursion set at 0.45), or between interfaces.
+    plane, a plain-box excursion set at 0.45), or between interfaces. Where the missing interface
+    triangles there run along the nearest plane, the region between them and it is named as well.
     """
     if not miss.any():
         return ""
@@ -312,9 +313,12 @@ def _missing_place(surface: SurfaceMesh, miss: np.ndarray) -> str:
     first, second = np.argsort(to_plane)[:2]
     place = f" near x = {tuple(round(float(v), 4) for v in centre)}"
     plane = f"x_{first} = {'0L'[int(centre[first] > 0.5 * box[first])]}"
+    layer = _layer_along_plane(surface, miss, centre, int(first), 0.05 * float(box.min()))
+    if layer:
+        place += f" ({layer} along the box plane {plane})"
     if to_plane[second] <= 10.0 * size:
         return (f"{place}, {to_plane[second]:.2g} from a box edge (seen where an interface passes a small fraction "
-                "of a grid step from a box edge: a matrix layer thinner than the input resolves; hint: move the "
+                "of a grid step from a box edge: a layer thinner than the input resolves; hint: move the "
                 "inclusion off the edge or across it, sample the field finer, or raise max_recovery_rounds)")
     if to_plane[first] <= size:
         return (f"{place}, {to_plane[first]:.2g} from the box plane {plane}: the interface there is nearly tangent "
@@ -323,6 +327,32 @@ def _missing_place(surface: SurfaceMesh, miss: np.ndarray) -> str:
                 "the plane at an angle there; a periodic field meshed periodic (with --roll auto) avoids the plane")
     return (f"{place} (interfaces closer to each other than the surface resolves; hint: sample the field finer or "
             "raise max_recovery_rounds)")
+
+
+def _layer_along_plane(surface: SurfaceMesh, miss: np.ndarray, centre: np.ndarray, axis: int, radius: float) -> str:
+    """What lies between the plane x_axis nearest `centre` and the missing interface triangles near it,
+    when most of those run along the plane (normals within 30 degrees of its normal): e.g. 'a layer of
+    inclusion 3 about 0.0002 thick'; '' otherwise. The right-hand normal points from sides[:, 0] to sides[:, 1]."""
+    box = np.asarray(surface.box, dtype=float)
+    tris, sides = surface.triangles[miss], surface.sides[miss]
+    P = surface.points[tris]
+    centroids = P.mean(axis=1)
+    near = (sides[:, 1] != OUTSIDE) & (np.linalg.norm(centroids - centre, axis=1) <= radius)  # interface triangles
+    if not near.any():
+        return ""
+    normal = cross3(P[near, 1] - P[near, 0], P[near, 2] - P[near, 0])
+    along = normal[:, axis] / np.maximum(np.linalg.norm(normal, axis=1), np.finfo(float).tiny)
+    flat = np.abs(along) >= np.cos(np.radians(30.0))
+    if 2 * flat.sum() <= len(flat):
+        return ""
+    at_zero = centre[axis] < 0.5 * box[axis]
+    away = along[flat] * (1.0 if at_zero else -1.0) > 0  # the normal points away from the plane
+    between = np.where(away, sides[near][flat, 0], sides[near][flat, 1])
+    values, counts = np.unique(between, return_counts=True)
+    region = int(values[np.argmax(counts)])
+    height = np.abs(centroids[near][flat, axis] - (0.0 if at_zero else box[axis]))
+    what = f"inclusion {region}" if region > 0 else "matrix"
+    return f"a layer of {what} about {float(np.median(height)):.2g} thick"
 
 
 def _missing_inclusion(surface: SurfaceMesh, miss: np.ndarray) -> int | None:

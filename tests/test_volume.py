@@ -618,4 +618,19 @@ def test_a_failed_recovery_names_the_place_and_the_likely_cause(centre, cause):
     message = _missing_place(surface, np.ones(surface.n_triangles, bool))
     place = re.search(r"near x = \(([^)]*)\)", message).group(1)
     assert np.allclose([float(v) for v in place.split(",")], centre, atol=0.003) and cause in message
-    assert ("x_0 = L" in message) == (cause == "nearly tangent to the plane")
+    assert ("from the box plane x_0 = L" in message) == (cause == "nearly tangent to the plane")
+
+
+@pytest.mark.parametrize("flip, layer", [(False, "a layer of inclusion 1 about 0.0002 thick"),
+                                         (True, "a layer of matrix about 0.0002 thick")])
+def test_a_failed_recovery_names_the_layer_between_the_interface_and_the_plane(flip, layer):
+    """Missing interface triangles along z = 0: their normal (from inclusion 1 to the matrix) tells
+    which region lies between them and the plane (numpy_grf_s302: inclusion 1 on z = 0)."""
+    from jaxmesh._volume import _missing_place
+
+    surface = _patch_of_triangles(np.array([0.5, 0.5, 0.0002]), normal_axis=2)  # normal +z: away from z = 0
+    if flip:
+        surface = SurfaceMesh(surface.points, surface.triangles[:, ::-1], surface.sides, surface.kind,
+                              surface.node_inclusion, surface.box, {}, {}, False)
+    message = _missing_place(surface, np.ones(surface.n_triangles, bool))
+    assert f"({layer} along the box plane x_2 = 0)" in message and "nearly tangent" in message
