@@ -23,7 +23,7 @@ from ._errors import MeshingError
 from ._mesh import Mesh, classify_facets, facet_table
 from ._quality import cross3, longest_edges, signed_volumes
 from ._face_flips import delaunay_box_faces, delaunay_interfaces
-from ._surface_mesh import OUTSIDE, SurfaceMesh
+from ._surface_mesh import INTERFACE, OUTSIDE, SurfaceMesh
 from ._volume_recover import (
     distance_to_surface,
     encroached_free_nodes,
@@ -313,7 +313,9 @@ def _missing_place(surface: SurfaceMesh, miss: np.ndarray) -> str:
     first, second = np.argsort(to_plane)[:2]
     place = f" near x = {tuple(round(float(v), 4) for v in centre)}"
     plane = f"x_{first} = {'0L'[int(centre[first] > 0.5 * box[first])]}"
-    layer = _layer_along_plane(surface, miss, centre, int(first), 0.05 * float(box.min()))
+    interface = surface.kind[miss] == INTERFACE
+    layer = _layer_along_plane(P[interface], centroids[interface], surface.sides[miss][interface], box, centre,
+                               int(first), 0.05 * float(box.min()))
     if layer:
         place += f" ({layer} along the box plane {plane})"
     if to_plane[second] <= 10.0 * size:
@@ -329,26 +331,22 @@ def _missing_place(surface: SurfaceMesh, miss: np.ndarray) -> str:
             "raise max_recovery_rounds)")
 
 
-def _layer_along_plane(surface: SurfaceMesh, miss: np.ndarray, centre: np.ndarray, axis: int, radius: float) -> str:
-    """What lies between the plane x_axis nearest `centre` and the missing interface triangles near it,
-    when most of those run along the plane (normals within 30 degrees of its normal): e.g. 'a layer of
-    inclusion 3 about 0.0002 thick'; '' otherwise. The right-hand normal points from sides[:, 0] to sides[:, 1]."""
-    box = np.asarray(surface.box, dtype=float)
-    tris, sides = surface.triangles[miss], surface.sides[miss]
-    P = surface.points[tris]
-    centroids = P.mean(axis=1)
-    near = (sides[:, 1] != OUTSIDE) & (np.linalg.norm(centroids - centre, axis=1) <= radius)  # interface triangles
-    if not near.any():
-        return ""
+def _layer_along_plane(P: np.ndarray, centroids: np.ndarray, sides: np.ndarray, box: np.ndarray, centre: np.ndarray,
+                       axis: int, radius: float) -> str:
+    """What lies between the plane x_axis nearest `centre` and the missing interface triangles P (k, 3, 3)
+    near it, when most of those run along the plane (normals within 30 degrees of its normal): e.g. 'a
+    layer of inclusion 3 about 0.0002 thick'; '' otherwise. The right-hand normal points from sides[:, 0]
+    to sides[:, 1]."""
+    near = np.linalg.norm(centroids - centre, axis=1) <= radius
     normal = cross3(P[near, 1] - P[near, 0], P[near, 2] - P[near, 0])
     along = normal[:, axis] / np.maximum(np.linalg.norm(normal, axis=1), np.finfo(float).tiny)
     flat = np.abs(along) >= np.cos(np.radians(30.0))
-    if 2 * flat.sum() <= len(flat):
+    if not near.any() or 2 * flat.sum() <= len(flat):
         return ""
     at_zero = centre[axis] < 0.5 * box[axis]
     away = along[flat] * (1.0 if at_zero else -1.0) > 0  # the normal points away from the plane
-    between = np.where(away, sides[near][flat, 0], sides[near][flat, 1])
-    values, counts = np.unique(between, return_counts=True)
+    sides = sides[near][flat]
+    values, counts = np.unique(np.where(away, sides[:, 0], sides[:, 1]), return_counts=True)
     region = int(values[np.argmax(counts)])
     height = np.abs(centroids[near][flat, axis] - (0.0 if at_zero else box[axis]))
     what = f"inclusion {region}" if region > 0 else "matrix"
