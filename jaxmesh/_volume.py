@@ -317,16 +317,19 @@ def _missing_place(surface: SurfaceMesh, miss: np.ndarray) -> str:
     layer = _layer_along_plane(P[interface], centroids[interface], surface.sides[miss][interface], box, centre,
                                int(first), 0.05 * float(box.min()))
     if layer:
-        place += f" ({layer} along the box plane {plane})"
+        across = ", going on across it into the periodic image" if surface.periodic else ""
+        place += f" ({layer} along the box plane {plane}{across})"
     if to_plane[second] <= 10.0 * size:
         return (f"{place}, {to_plane[second]:.2g} from a box edge (seen where an interface passes a small fraction "
                 "of a grid step from a box edge: a layer thinner than the input resolves; hint: move the "
                 "inclusion off the edge or across it, sample the field finer, or raise max_recovery_rounds)")
     if to_plane[first] <= size:
+        remedy = ("--roll auto moves the box planes off the inclusions' extremes" if surface.periodic else
+                  "a periodic field meshed periodic (with --roll auto) avoids the plane")
         return (f"{place}, {to_plane[first]:.2g} from the box plane {plane}: the interface there is nearly tangent "
                 "to the plane (it grazes it, or a layer thinner than the grid step meets it), and the nodes recovery "
                 "adds come ever closer to the plane; hint: sample or smooth the field so that the interface crosses "
-                "the plane at an angle there; a periodic field meshed periodic (with --roll auto) avoids the plane")
+                f"the plane at an angle there; {remedy}")
     return (f"{place} (interfaces closer to each other than the surface resolves; hint: sample the field finer or "
             "raise max_recovery_rounds)")
 

@@ -634,3 +634,16 @@ def test_a_failed_recovery_names_the_layer_between_the_interface_and_the_plane(f
                               surface.node_inclusion, surface.box, {}, {}, False)
     message = _missing_place(surface, np.ones(surface.n_triangles, bool))
     assert f"({layer} along the box plane x_2 = 0)" in message and "nearly tangent" in message
+    assert "a periodic field meshed periodic" in message
+
+
+def test_a_failed_periodic_recovery_says_the_layer_goes_on_across_the_plane():
+    from jaxmesh._volume import _missing_place
+
+    plain = _patch_of_triangles(np.array([0.5, 0.5, 0.0002]), normal_axis=2)
+    surface = SurfaceMesh(plain.points, plain.triangles, plain.sides, plain.kind, plain.node_inclusion, plain.box, {},
+                          {}, True)
+    message = _missing_place(surface, np.ones(surface.n_triangles, bool))
+    assert "(a layer of inclusion 1 about 0.0002 thick along the box plane x_2 = 0, going on across it into the " \
+           "periodic image)" in message
+    assert "--roll auto moves the box planes" in message and "meshed periodic" not in message
