@@ -54,6 +54,7 @@ _KEPT_FRACTION_NOTE = 0.8  # grf: say why when dropped components take more than
 # sphere/ellipsoid: the mesher refuses inclusions closer than one grid step, so the default gap
 # keeps at least that, with a tenth of a step to spare (ellipsoid gaps are solved to a tolerance)
 _DEFAULT_MIN_GAP, _DEFAULT_GAP_STEPS = 0.02, 1.1
+_DEFAULT_RADIUS = 0.1  # generate: mean radius (largest semi-axis) when --radius is not given
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
@@ -91,10 +92,13 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         shape = {"sphere": "sphere", "ellipsoid": "ellipsoid"}[shape]
     step = min(box) / args.grid
     min_gap = max(_DEFAULT_MIN_GAP, _DEFAULT_GAP_STEPS * step) if args.min_gap is None else args.min_gap
+    # --n with --volume-fraction and no --radius: n inclusions at that fraction, sizes scaled to fill it
+    fill = args.radius is None and args.n is not None and args.volume_fraction is not None
+    radius = _DEFAULT_RADIUS if args.radius is None else args.radius
     specs = gen.random_inclusions(
         box, n=args.n, volume_fraction=args.volume_fraction, shape=shape,
-        radius=(args.radius, args.radius_std), aspect=(1.0, args.max_aspect),
-        min_gap=min_gap, box_gap=args.box_gap, seed=args.seed,
+        radius=(radius, args.radius_std),
+        aspect=(1.0, args.max_aspect), min_gap=min_gap, box_gap=args.box_gap, seed=args.seed, scale_to_fraction=fill,
     )
     _check_meshable(specs, box, grid_shape, min_gap, step)
     gen.write_input(args.output, specs, box, grid_shape)
@@ -108,6 +112,9 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     if args.n is not None and args.volume_fraction and volume / box_volume < args.volume_fraction - 0.005:
         print(f"    note: --n {args.n} was reached first (volume fraction {volume / box_volume:.4f}, asked "
               f"{args.volume_fraction}): drop --n, or raise it or --radius, to reach the fraction", flush=True)
+    elif args.n is not None and len(specs) < args.n:
+        print(f"    note: the volume fraction was reached with {len(specs)} of the --n {args.n} inclusions: drop "
+              "--radius to have all of them, their sizes scaled to the fraction", flush=True)
     return 0
 
 
@@ -371,10 +378,15 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--kind", choices=("sphere", "ellipsoid", "grf"), default="sphere",
                    help="sphere/ellipsoid (circle/ellipse in 2D) by random sequential addition, or grf: "
                         "excursion set of a periodic Gaussian random field")
-    g.add_argument("--n", type=int, default=None, help="number of inclusions")
+    g.add_argument("--n", type=int, default=None,
+                   help="number of inclusions (with --volume-fraction and no --radius: n inclusions at that "
+                        "fraction, their sizes scaled to fill it)")
     g.add_argument("--volume-fraction", type=float, default=None)
-    g.add_argument("--radius", type=float, default=0.1, help="mean radius (largest semi-axis for ellipsoids)")
-    g.add_argument("--radius-std", type=float, default=0.02)
+    g.add_argument("--radius", type=float, default=None,
+                   help=f"mean radius (largest semi-axis for ellipsoids; default {_DEFAULT_RADIUS}); given with --n "
+                        "and --volume-fraction, the generator stops at whichever of the two it reaches first")
+    g.add_argument("--radius-std", type=float, default=0.02,
+                   help="spread of the radii (scaled with them when they are fitted to --n and --volume-fraction)")
     g.add_argument("--max-aspect", type=float, default=2.0, help="largest aspect ratio for ellipsoids")
     g.add_argument("--min-gap", type=float, default=None,
                    help="guaranteed minimum gap between inclusions (default: 0.02, or 1.1 grid steps when larger; "

@@ -380,10 +380,13 @@ def _draw_axes(rng, sampler, shape, aspect, dim, m) -> np.ndarray:
     return np.concatenate([r[:, None], np.repeat((r / k)[:, None], dim - 1, axis=1)], axis=1)
 
 
-def _draw_pool(rng, draw, n, target, box_volume, tol, dim) -> np.ndarray:
-    """Semi-axes (m, d), largest first, of n inclusions or of inclusions whose volumes sum to `target`."""
+def _draw_pool(rng, draw, n, target, box_volume, tol, dim, scale_to_fraction=False) -> np.ndarray:
+    """Semi-axes (m, d), largest first, of n inclusions or of inclusions whose volumes sum to `target`
+    (scale_to_fraction: n inclusions, all scaled by one factor so that their volumes sum to `target`)."""
     if n is not None:
         axes = draw(n)
+        if scale_to_fraction:
+            axes *= (target / (_ball(dim) * float(np.sum(np.prod(axes, axis=1))))) ** (1 / dim)
     else:
         chunks, total = [], 0.0
         while total < target:
@@ -417,6 +420,7 @@ def random_inclusions(
     max_attempts: int = 500,
     tol: float = 0.005,
     max_relax_iter: int = 3000,
+    scale_to_fraction: bool = False,
 ) -> list[InclusionSpec]:
     """Periodic random sequential addition (RSA) of spheres or ellipsoids (2D: circles/ellipses) with a gap.
 
@@ -429,7 +433,7 @@ def random_inclusions(
         box: (d,) box lengths, d in {2, 3}.
         n: number of inclusions; volume_fraction: target inclusion fraction in (0, 1). Give either
             or both (then it stops at whichever is reached first; of the n drawn, one that would
-            overshoot the fraction by more than tol is left out).
+            overshoot the fraction by more than tol is left out; with scale_to_fraction, all n).
         shape: "sphere" or "ellipsoid" (prolate spheroid, uniformly random orientation).
         radius: radius / largest semi-axis: a float, (mean, std) of a normal truncated to
             [max(mean - 2 std, mean / 4), mean + 2 std], or a callable (rng, n) -> (n,) radii.
@@ -443,6 +447,9 @@ def random_inclusions(
         max_attempts: random positions tried per inclusion before it is left to densification.
         tol: accepted |reached - target| volume fraction (the pool is drawn to hit the target).
         max_relax_iter: iterations allowed for densification.
+        scale_to_fraction: with n and volume_fraction both given, scale the n drawn sizes by one common
+            factor so that n inclusions fill volume_fraction exactly; `radius` then sets the spread of
+            the sizes relative to their mean, not their scale.
 
     Returns:
         list of InclusionSpec, centres in [0, L).
@@ -461,6 +468,9 @@ def random_inclusions(
         raise ValueError(f"shape: expected 'sphere' or 'ellipsoid', got {shape!r}.")
     if n is None and volume_fraction is None:
         raise ValueError("random_inclusions: expected n or volume_fraction (or both), got neither.")
+    if scale_to_fraction and (n is None or volume_fraction is None):
+        raise ValueError("scale_to_fraction: expected both n and volume_fraction, got "
+                         f"n={n!r}, volume_fraction={volume_fraction!r}.")
     if n is not None and (isinstance(n, bool) or int(n) != n or n < 1):
         raise ValueError(f"n: expected a positive integer, got {n!r}.")
     if volume_fraction is not None and not 0 < volume_fraction < 1:
@@ -484,20 +494,23 @@ def random_inclusions(
     target = volume_fraction * box_volume if volume_fraction is not None else np.inf
     sampler = _radius_sampler(radius)
     axes = _draw_pool(
-        rng, lambda m: _draw_axes(rng, sampler, shape, (lo_k, hi_k), dim, m), n, target, box_volume, tol, dim
+        rng, lambda m: _draw_axes(rng, sampler, shape, (lo_k, hi_k), dim, m), n, target, box_volume, tol, dim,
+        scale_to_fraction,
     )
     if axes[:, 0].max() + min_gap / 2 > box.min() / 2:
         raise ValueError(
             f"radius: an inclusion of radius {axes[:, 0].max():.4g} (+ half the gap {min_gap / 2:.4g}) is larger "
             f"than half the box {box.min():.4g}: it would touch its own periodic image. Hint: smaller radii or "
-            "a larger box."
+            + ("more inclusions or a lower fraction (the sizes are scaled to fill it)" if scale_to_fraction else
+               "a larger box") + "."
         )
     rots = np.stack([_random_rotation(rng, dim) if shape == "ellipsoid" else np.eye(dim) for _ in axes])
     vols = _ball(dim) * np.prod(axes, axis=1)
 
     pack = _Packing(box, axes, rots, float(min_gap), shape == "sphere", box_gap)
     committed, deferred, batch = 0.0, [], 32
-    enough = target - (0.5 * tol if n is not None else 1e-12) * box_volume  # a fraction-only pool sums to target
+    # a fraction-only or scaled pool sums to target: place all of it
+    enough = target - (0.5 * tol if n is not None and not scale_to_fraction else 1e-12) * box_volume
     for i in range(len(axes)):
         if committed >= enough:
             break

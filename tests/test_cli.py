@@ -127,6 +127,18 @@ def test_generate_says_when_the_count_stops_it_short_of_the_fraction(tmp_path, c
     assert "note:" not in capsys.readouterr().out
 
 
+def test_generate_with_count_and_fraction_gives_both(tmp_path, capsys):
+    """`--n 40 --volume-fraction 0.4` (no --radius) gave 9 circles of the default radius; now 40 at 0.4."""
+    args = ["generate", str(tmp_path / "c.npz"), "--dim", "2", "--n", "40", "--volume-fraction", "0.4", "--grid", "128",
+            "--seed", "83"]
+    assert main(args) == 0
+    assert "40 spheres, volume fraction 0.4000" in capsys.readouterr().out
+    data = np.load(tmp_path / "c.npz")
+    assert len(data["centers"]) == 40 and abs(np.pi * np.sum(data["axes"][:, 0] ** 2) - 0.4) < 1e-9
+    assert main([*args, "--radius", "0.1"]) == 0
+    assert "note: the volume fraction was reached with 9 of the --n 40 inclusions" in capsys.readouterr().out
+
+
 def test_compilation_cache_folder_from_the_environment(monkeypatch, tmp_path):
     from jaxmesh._compile_cache import CACHE_ENV, default_cache_dir
 

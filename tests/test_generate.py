@@ -113,6 +113,16 @@ def test_count_and_fraction_together_stop_at_first():
     assert len(many) < 500 and abs(_fraction(many, box) - 0.2) <= 0.005
 
 
+@pytest.mark.parametrize("dim, shape", [(2, "sphere"), (3, "ellipsoid")])
+def test_count_and_fraction_scaled_to_fill_give_both(dim, shape):
+    box = (1.0,) * dim
+    specs = random_inclusions(box, n=24, volume_fraction=0.3, shape=shape, radius=(0.1, 0.02), min_gap=0.02,
+                              seed=5, scale_to_fraction=True)
+    assert len(specs) == 24 and abs(_fraction(specs, box) - 0.3) < 1e-9
+    with pytest.raises(ValueError, match="scale_to_fraction: expected both n and volume_fraction"):
+        random_inclusions(box, n=24, scale_to_fraction=True)
+
+
 def test_count_and_fraction_leave_out_one_that_would_overshoot_the_fraction():
     """`jaxmesh generate --dim 2 --kind ellipsoid --n 60 --volume-fraction 0.4 --box-gap 0 --seed 45`:
     the 12th of the largest-first ellipses took the fraction to 0.4107, past the tolerance, and the
