@@ -258,11 +258,35 @@ _REDISTANCE_HELP = ("level-set inputs: first make the field a first-order signed
                      "metadata.redistance.after_failure keeps the first error); --no-redistance: never")
 
 
+def _check_mesh_outputs(args: argparse.Namespace) -> None:
+    """Refuse before meshing what would fail only after it, minutes later and with some files already
+    written: an unknown mesh format, a plot that is not a PNG, a missing folder, or an output path that
+    is the input or another output."""
+    from ._plot import check_png_path
+    from .io._write import resolve_format
+
+    resolve_format(Path(args.output), None)
+    if args.plot:
+        check_png_path(args.plot)
+    taken = {Path(args.input).resolve(): "the input"}
+    for option, path in (("-o", args.output), ("--report", args.report), ("--plot", args.plot)):
+        if path is None:
+            continue
+        if not Path(path).parent.is_dir():
+            raise ValueError(f"{option} {path}: folder {str(Path(path).parent)!r} does not exist; hint: create it "
+                             "first")
+        if (key := Path(path).resolve()) in taken:
+            raise ValueError(f"{option} {path} is also {taken[key]}, which it would overwrite; hint: give each "
+                             "output its own file name")
+        taken[key] = option
+
+
 def _cmd_mesh(args: argparse.Namespace) -> int:
     from ._pipeline import mesh_rve
     from ._quality import quality_report
 
     t0 = time.perf_counter()
+    _check_mesh_outputs(args)
     config = MeshConfig(h=args.h, periodic=not args.no_periodic, seed=args.seed, backend=args.backend,
                         max_elements=args.max_elements if args.max_elements > 0 else None, roll=_roll_arg(args.roll),
                         redistance=args.redistance, **_size_kwargs(args))

@@ -16,7 +16,7 @@ from .io._write import atomic_path
 _MATRIX_RGBA = (0.86, 0.86, 0.86, 1.0)
 
 
-def _check_png(path) -> Path:
+def check_png_path(path) -> Path:
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise ValueError(f"plots are written as PNG, got {path.name!r}; hint: use a .png file name")
@@ -115,7 +115,7 @@ def plot_mesh(mesh, path, *, title: str | None = None, color_by: str = "inclusio
     from matplotlib.collections import PolyCollection
     from matplotlib.figure import Figure
 
-    path = _check_png(path)
+    path = check_png_path(path)
     pts, cells, ids = np.asarray(mesh.points), np.asarray(mesh.cells), np.asarray(mesh.inclusion_id)
     box = np.asarray(mesh.box, dtype=float)
     colors = _colors(ids, color_by)
@@ -155,7 +155,7 @@ def plot_quality_histogram(mesh, path, *, title: str | None = None) -> Path:
     """
     from matplotlib.figure import Figure
 
-    path = _check_png(path)
+    path = check_png_path(path)
     fig = Figure(figsize=(6.0, 4.0))
     ax = fig.subplots()
     _draw_histogram(ax, cell_quality(mesh.points, mesh.cells))

@@ -231,6 +231,23 @@ def test_mesh_refuses_a_bad_roll_before_meshing(tmp_path, capsys, roll, extra, m
     assert message in capsys.readouterr().err and not out.exists()
 
 
+@pytest.mark.parametrize("outputs, message", [
+    (["-o", "m.xyz"], "cannot tell the mesh format from 'm.xyz'"),
+    (["-o", "m.vtu", "--plot", "m.jpg"], "plots are written as PNG"),
+    (["-o", "phi.npz"], "-o phi.npz is also the input, which it would overwrite"),
+    (["-o", "m.vtu", "--report", "m.vtu"], "--report m.vtu is also -o"),
+    (["-o", "missing/m.vtu"], "folder 'missing' does not exist"),
+])
+def test_mesh_refuses_bad_outputs_before_meshing(tmp_path, capsys, monkeypatch, outputs, message):
+    """Each of these failed only after the whole run (a JPEG plot after the mesh and report were
+    written), or overwrote the input."""
+    monkeypatch.chdir(tmp_path)
+    np.savez("phi.npz", phi=np.ones((16, 16, 16)))  # no inclusion: meshing would stop at once, with another message
+    assert main(["mesh", "phi.npz", *outputs]) == 2
+    assert message in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["phi.npz"] and np.all(np.load("phi.npz")["phi"] == 1)
+
+
 def test_mesh_and_validate_with_roll_auto(tmp_path, capsys):
     """A rolled mesh conforms to the geometry read with the same --roll, and not to the file's frame."""
     n, radius = 24, 0.25

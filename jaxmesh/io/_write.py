@@ -42,7 +42,7 @@ def atomic_path(path: str | Path):
             tmp.unlink()
 
 
-def _resolve_format(path: Path, file_format: str | None) -> str:
+def resolve_format(path: Path, file_format: str | None) -> str:
     if file_format is None:
         fmt = FORMATS.get(path.suffix.lower())
         if fmt is None:
@@ -94,7 +94,7 @@ def write_mesh(mesh, path: str | Path, file_format: str | None = None) -> Path:
     Example: ``write_mesh(mesh, "rve.msh")``.
     """
     path = Path(path)
-    fmt = _resolve_format(path, file_format)
+    fmt = resolve_format(path, file_format)
     import meshio
 
     with atomic_path(path) as tmp:
