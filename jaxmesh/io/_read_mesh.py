@@ -13,7 +13,9 @@ def read_mesh(path, box=None, periodic: bool = True):
     """Read a triangle (2D) or tetrahedral (3D) mesh file into a :class:`jaxmesh.Mesh`.
 
     Args:
-        path: any format meshio reads (.vtu, .msh, .xdmf, .inp, .vtk); `.npz` as written by jaxmesh.
+        path: any format meshio reads (.vtu, .msh, .xdmf, .inp, .vtk); `.npz` as written by jaxmesh;
+            .xdmf with inline XML data (as jaxmesh writes it) is read here, without h5py; a .msh
+            written by jaxmesh comes back in the mesh's node order (its `node_id` data).
         box: box lengths; default: the bounding box of the points (origin must be 0).
         periodic: rebuild periodic node pairs by translation (ValueError if the faces do not match).
     Returns:
@@ -28,10 +30,16 @@ def read_mesh(path, box=None, periodic: bool = True):
         with np.load(path, allow_pickle=False) as data:
             points, cells = data["points"], data["cells"]
             inclusion_id = data["inclusion_id"] if "inclusion_id" in data else np.zeros(len(cells), np.int64)
+    elif path.suffix.lower() == ".xdmf" and _inline_xml(path):
+        points, cells, inclusion_id = _read_xdmf_xml(path)
     else:
         import meshio
 
-        m = meshio.read(path)
+        try:
+            m = meshio.read(path)
+        except ModuleNotFoundError as err:  # meshio's XDMF reader imports h5py, not a dependency here
+            raise ValueError(f"{path}: reading it needs the package {err.name!r}, which is not installed; hint: "
+                             f"pip install {err.name}") from None
         points = np.asarray(m.points, dtype=np.float64)
         dim = 3 if any(b.type == "tetra" for b in m.cells) else 2
         points = points[:, :dim]
@@ -47,6 +55,7 @@ def read_mesh(path, box=None, periodic: bool = True):
         inclusion_id = ids if ids is not None else np.zeros(len(cells), np.int64)
         if ids is not None and key == "gmsh:physical":
             inclusion_id = inclusion_id - 1  # jaxmesh writes physical tag = inclusion id + 1
+        points, cells = _in_written_order(points, cells, m.point_data.get("node_id"))
     lower = points.min(axis=0)
     if np.any(np.abs(lower) > 1e-9 * np.ptp(points, axis=0).max()):
         raise ValueError(f"{path}: expected a box with its origin at 0, the points start at {lower.tolist()}")
@@ -56,3 +65,42 @@ def read_mesh(path, box=None, periodic: bool = True):
     pairs = make_periodic_pairs(points, box) if periodic else {}
     return Mesh(points=points, cells=cells, inclusion_id=inclusion_id, box=box, periodic=periodic,
                 periodic_pairs=pairs, metadata={"source": str(path)})
+
+
+def _in_written_order(points: np.ndarray, cells: np.ndarray, node_id) -> tuple[np.ndarray, np.ndarray]:
+    """Undo the .msh writer's renumbering by entity block: node k of the file was node_id[k] of the mesh."""
+    if node_id is None:
+        return points, cells
+    order = np.asarray(node_id).round().astype(np.int64)
+    if not np.array_equal(np.sort(order), np.arange(len(points))):
+        return points, cells  # not a permutation: not jaxmesh's numbering
+    restored = np.empty_like(points)
+    restored[order] = points
+    return restored, order[cells]
+
+
+def _inline_xml(path: Path) -> bool:
+    """Whether an XDMF file keeps all its data inline (Format="XML"), as jaxmesh writes it."""
+    import xml.etree.ElementTree as ET
+
+    return all(item.get("Format", "XML") == "XML" for item in ET.parse(path).getroot().iter("DataItem"))
+
+
+def _read_xdmf_xml(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points, cells, inclusion_id) of an inline-XML XDMF file with one grid of triangles or tetrahedra
+    (meshio's reader needs h5py even for inline data)."""
+    import xml.etree.ElementTree as ET
+
+    grid = ET.parse(path).getroot().find("Domain/Grid")
+    if grid is None or grid.find("Geometry/DataItem") is None or grid.find("Topology/DataItem") is None:
+        raise ValueError(f"{path}: expected an XDMF Domain/Grid with a Geometry and a Topology")
+
+    def values(item, dtype):
+        shape = [int(v) for v in item.get("Dimensions").split()]
+        return np.array(item.text.split(), dtype=dtype).reshape(shape)
+
+    points = values(grid.find("Geometry/DataItem"), np.float64)
+    cells = values(grid.find("Topology/DataItem"), np.int64)
+    ids = next((values(a.find("DataItem"), np.int64).ravel() for a in grid.findall("Attribute")
+                if a.get("Name") == "inclusion_id" and a.get("Center") == "Cell"), None)
+    return points, cells, np.zeros(len(cells), np.int64) if ids is None else ids
