@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import xml.etree.ElementTree as ET
 
 import meshio
@@ -299,3 +300,25 @@ def test_read_mesh_gives_back_what_was_written(mesh, tmp_path, suffix):
         expected = np.lexsort(np.sort(mesh.cells, axis=1).T[::-1])
         np.testing.assert_array_equal(back.inclusion_id[order], mesh.inclusion_id[expected])
     assert {a: len(p) for a, p in back.periodic_pairs.items()} == {a: len(p) for a, p in mesh.periodic_pairs.items()}
+
+
+@pytest.mark.parametrize("name, content, message", [
+    ("m.vtu", b"garbage", "meshio could not read it as a mesh (Error: Couldn't read file"),
+    ("m.msh", b"garbage", "meshio could not read it as a mesh"),
+    ("m.xdmf", b"garbage", "not an XDMF (XML) file"),
+])
+def test_read_mesh_of_a_damaged_file_is_a_clear_error(tmp_path, name, content, message):
+    """meshio prints and calls sys.exit(1) on a file it cannot parse."""
+    from jaxmesh.io import read_mesh
+
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(ValueError, match=re.escape(message)):
+        read_mesh(tmp_path / name)
+
+
+def test_read_mesh_of_an_input_npz_says_it_is_an_input(tmp_path):
+    from jaxmesh.io import read_mesh
+
+    np.savez(tmp_path / "rve.npz", phi=np.ones((8, 8)))
+    with pytest.raises(ValueError, match="an input file .phi or labels. goes to --geometry"):
+        read_mesh(tmp_path / "rve.npz")

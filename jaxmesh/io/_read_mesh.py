@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 from pathlib import Path
 
 import numpy as np
@@ -28,18 +30,15 @@ def read_mesh(path, box=None, periodic: bool = True):
         raise ValueError(f"mesh file {str(path)!r} does not exist")
     if path.suffix == ".npz":
         with np.load(path, allow_pickle=False) as data:
+            if not {"points", "cells"} <= set(data.files):
+                raise ValueError(f"{path}: expected a mesh .npz as jaxmesh writes it (arrays points, cells), got "
+                                 f"{sorted(data.files)}; hint: an input file (phi or labels) goes to --geometry")
             points, cells = data["points"], data["cells"]
             inclusion_id = data["inclusion_id"] if "inclusion_id" in data else np.zeros(len(cells), np.int64)
     elif path.suffix.lower() == ".xdmf" and _inline_xml(path):
         points, cells, inclusion_id = _read_xdmf_xml(path)
     else:
-        import meshio
-
-        try:
-            m = meshio.read(path)
-        except ModuleNotFoundError as err:  # meshio's XDMF reader imports h5py, not a dependency here
-            raise ValueError(f"{path}: reading it needs the package {err.name!r}, which is not installed; hint: "
-                             f"pip install {err.name}") from None
+        m = _read_with_meshio(path)
         points = np.asarray(m.points, dtype=np.float64)
         dim = 3 if any(b.type == "tetra" for b in m.cells) else 2
         points = points[:, :dim]
@@ -67,6 +66,23 @@ def read_mesh(path, box=None, periodic: bool = True):
                 periodic_pairs=pairs, metadata={"source": str(path)})
 
 
+def _read_with_meshio(path: Path):
+    """meshio.read, its failures as ValueError: on a file it cannot parse it prints and calls sys.exit(1)."""
+    import meshio
+
+    said = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+            return meshio.read(path)
+    except ModuleNotFoundError as err:  # meshio's XDMF reader imports h5py, not a dependency here
+        raise ValueError(f"{path}: reading it needs the package {err.name!r}, which is not installed; hint: "
+                         f"pip install {err.name}") from None
+    except (SystemExit, Exception) as err:
+        detail = " ".join(said.getvalue().split()) or f"{type(err).__name__}: {err}"
+        raise ValueError(f"{path}: meshio could not read it as a mesh ({detail}); hint: jaxmesh writes .vtu, "
+                         ".msh, .xdmf, .inp, .vtk and .npz meshes") from None
+
+
 def _in_written_order(points: np.ndarray, cells: np.ndarray, node_id) -> tuple[np.ndarray, np.ndarray]:
     """Undo the .msh writer's renumbering by entity block: node k of the file was node_id[k] of the mesh."""
     if node_id is None:
@@ -83,7 +99,11 @@ def _inline_xml(path: Path) -> bool:
     """Whether an XDMF file keeps all its data inline (Format="XML"), as jaxmesh writes it."""
     import xml.etree.ElementTree as ET
 
-    return all(item.get("Format", "XML") == "XML" for item in ET.parse(path).getroot().iter("DataItem"))
+    try:
+        items = list(ET.parse(path).getroot().iter("DataItem"))
+    except ET.ParseError as err:
+        raise ValueError(f"{path}: not an XDMF (XML) file: {err}") from None
+    return all(item.get("Format", "XML") == "XML" for item in items)
 
 
 def _read_xdmf_xml(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
