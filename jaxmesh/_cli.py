@@ -92,6 +92,8 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         shape = {"sphere": "sphere", "ellipsoid": "ellipsoid"}[shape]
     step = min(box) / args.grid
     min_gap = max(_DEFAULT_MIN_GAP, _DEFAULT_GAP_STEPS * step) if args.min_gap is None else args.min_gap
+    if args.n is None and args.volume_fraction is None:
+        raise ValueError("give --n, --volume-fraction or both (e.g. --n 30 --volume-fraction 0.3)")
     # --n with --volume-fraction and no --radius: n inclusions at that fraction, sizes scaled to fill it
     fill = args.radius is None and args.n is not None and args.volume_fraction is not None
     radius = _DEFAULT_RADIUS if args.radius is None else args.radius

@@ -109,6 +109,8 @@ class MeshConfig:
                 raise ValueError(
                     f"MeshConfig.{name}: expected a positive finite number, got {value!r}; hint: {_FIELD_HINTS[name]}"
                 )
+        if not isinstance(self.seed, (int, np.integer)) or isinstance(self.seed, bool) or self.seed < 0:
+            raise ValueError(f"MeshConfig.seed: expected an integer >= 0 (NumPy's seeds), got {self.seed!r}")
         if self.backend not in ("conforming", "tetwild"):
             raise ValueError(f"MeshConfig.backend: expected 'conforming' or 'tetwild', got {self.backend!r}")
         if self.interior not in ("bcc", "octree"):

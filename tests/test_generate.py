@@ -557,3 +557,12 @@ def test_inclusion_spec_validation():
         InclusionSpec("cube", [0.5, 0.5], [0.1, 0.1], None)
     with pytest.raises(ValueError, match="expected center"):
         InclusionSpec("sphere", [0.5, 0.5, 0.5], [0.1, 0.1], None)
+
+
+@pytest.mark.parametrize("seed", [-1, 0.5, True])
+def test_a_bad_seed_is_named(seed):
+    """NumPy's own message ('expected non-negative integer') named no argument."""
+    with pytest.raises(ValueError, match="seed: expected an integer >= 0"):
+        random_inclusions((1.0, 1.0), n=2, radius=0.1, seed=seed)
+    with pytest.raises(ValueError, match="seed: expected an integer >= 0"):
+        excursion_set((1.0, 1.0), (32, 32), correlation_length=0.1, volume_fraction=0.3, seed=seed)

@@ -310,6 +310,13 @@ def test_a_bad_parameter_gets_a_hint_about_that_parameter(name, bad, hint):
         MeshConfig(**{name: bad})
 
 
+@pytest.mark.parametrize("bad", [-5, 1.5, True, "0"])
+def test_a_bad_seed_is_named(bad):
+    """`jaxmesh mesh --seed -5` ended in NumPy's bare 'expected non-negative integer' after the input stage."""
+    with pytest.raises(ValueError, match=r"MeshConfig\.seed: expected an integer >= 0"):
+        MeshConfig(seed=bad)
+
+
 def test_a_tip_sharper_than_the_grid_is_refused_by_place_and_meshed_redistanced(tmp_path):
     """An algebraic (not distance) prolate ellipsoid field, aspect 6 on 32^3: its tips (radius of
     curvature a quarter of a grid step) leave the interpolated field a ripple just inside each tip,
