@@ -21,6 +21,7 @@ from jaxmesh._generate import (
     write_input,
 )
 from jaxmesh._periodic import image_shifts, minimum_image
+from jaxmesh.io import load_input
 
 
 def _pairs_with_images(specs, box):
@@ -518,6 +519,11 @@ def test_write_input_round_trip_and_microstructure(tmp_path):
     direct = microstructure_from_specs(specs, box, shape)
     np.testing.assert_allclose(direct.dn1, ms.dn1)
     assert microstructure_from_npz({"phi": data["phi"], "box": data["box"]}) is None
+    # analytic inclusions stay in the file's box: another box is refused (it moved none of them)
+    assert load_input(path, box=(1.0, 1.0, 1.0)).box == (1.0, 1.0, 1.0)
+    for other in ((2.0, 2.0, 2.0), (1.0, 1.0)):
+        with pytest.raises(ValueError, match=r"the file's analytic inclusions are placed in its own box"):
+            load_input(path, box=other)
     grf = tmp_path / "grf.npz"
     write_input(grf, None, (1.0, 1.0), (32, 32), phi=excursion_set((1.0, 1.0), (32, 32), correlation_length=0.1,
                                                                    volume_fraction=0.3))

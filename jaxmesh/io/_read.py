@@ -63,6 +63,11 @@ def _read_npz(path: Path, box, periodic, roll=None, redistance: bool = False):
     if "phi" not in data and "labels" not in data and not single:
         _fail(path, f"expected a key 'phi' (level set) or 'labels' (labelled image), got keys {sorted(data)}",
               "np.savez(path, phi=phi, box=box) or np.savez(path, labels=labels)")
+    if "kind" in data and "box" in data and box is not None and (
+            np.shape(box) != np.shape(data["box"]) or not np.allclose(box, data["box"], rtol=1e-12, atol=0)):
+        _fail(path, f"box {tuple(float(v) for v in box)} given, but the file's analytic inclusions are placed in its "
+                    f"own box {tuple(np.asarray(data['box'], float).tolist())}", "drop --box, or generate the RVE "
+                    "with that --box")
     if box is None and "box" in data:
         box = tuple(np.asarray(data["box"], dtype=float).ravel().tolist())
     if periodic is None:
@@ -130,7 +135,9 @@ def load_input(path, box=None, periodic: bool | None = None, roll=None, redistan
             optional 'box' and 'periodic'; a single unnamed grid, 'arr_0', is read as a .npy; analytic inclusions written by jaxmesh.generate are
             rebuilt exactly when that module is available), .tif/.tiff (integer: labels, else
             level set; array axis 0 = x), .vti (pyvista; point data 'phi' or 'labels' or the first).
-        box: (d,) cell lengths; overrides the file's; default from the file, else the unit cube.
+        box: (d,) cell lengths; overrides the file's (except for a file from `jaxmesh generate` with
+            analytic inclusions, placed in its own box: another box is refused); default from the
+            file, else the unit cube.
         periodic: overrides the file's 'periodic'; default from the file, else True.
         roll: optional d integers: read the periodic grid rolled so that sample roll[a] lies at
             x_a = 0 (the box faces move to x_a = roll[a] L_a / n_a of the file's frame; the mesh is
