@@ -123,9 +123,11 @@ def test_npz_with_analytic_inclusions_uses_the_generator_hook(tmp_path, monkeypa
     fake = types.ModuleType("jaxmesh._generate")
     fake.microstructure_from_npz = hook
     monkeypatch.setitem(sys.modules, "jaxmesh._generate", fake)
-    assert load_input(tmp_path / "g.npz", box=(2.0, 2.0), periodic=False) == "analytic"
-    np.testing.assert_array_equal(seen["box"], [2.0, 2.0])  # the arguments override the file
-    assert not seen["periodic"] and "centers" in seen
+    assert load_input(tmp_path / "g.npz", box=(1.0, 1.0), periodic=False) == "analytic"
+    np.testing.assert_array_equal(seen["box"], [1.0, 1.0])
+    assert not seen["periodic"] and "centers" in seen  # the argument overrides the file
+    with pytest.raises(ValueError, match="analytic inclusions are placed in its own box"):
+        load_input(tmp_path / "g.npz", box=(2.0, 2.0))  # it would not move them
     seen["use"] = "fallback"  # the hook declines: the level set is used
     ms = load_input(tmp_path / "g.npz")
     assert isinstance(ms, Microstructure) and len(ms.inclusions) == 1
