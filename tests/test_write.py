@@ -289,16 +289,15 @@ def test_gmsh_itself_reads_the_file(mesh, tmp_path):
 @pytest.mark.parametrize("suffix", [".vtu", ".msh", ".xdmf", ".vtk", ".npz", ".inp"])
 def test_read_mesh_gives_back_what_was_written(mesh, tmp_path, suffix):
     """`jaxmesh validate` reads meshes through read_mesh: .xdmf failed there with meshio's
-    ModuleNotFoundError for h5py, though the file is inline XML."""
+    ModuleNotFoundError for h5py, though the file is inline XML; .inp came back all matrix."""
     from jaxmesh.io import read_mesh
 
     back = read_mesh(write_mesh(mesh, tmp_path / f"m{suffix}"), box=mesh.box)
     np.testing.assert_allclose(back.points, mesh.points, rtol=0, atol=1e-15)
     assert _rows(np.sort(back.cells, axis=1)) == _rows(np.sort(mesh.cells, axis=1))
-    if suffix != ".inp":  # Abaqus keeps the ids as element sets, not as cell data
-        order = np.lexsort(np.sort(back.cells, axis=1).T[::-1])
-        expected = np.lexsort(np.sort(mesh.cells, axis=1).T[::-1])
-        np.testing.assert_array_equal(back.inclusion_id[order], mesh.inclusion_id[expected])
+    order = np.lexsort(np.sort(back.cells, axis=1).T[::-1])  # .inp: ids from its element sets
+    expected = np.lexsort(np.sort(mesh.cells, axis=1).T[::-1])
+    np.testing.assert_array_equal(back.inclusion_id[order], mesh.inclusion_id[expected])
     assert {a: len(p) for a, p in back.periodic_pairs.items()} == {a: len(p) for a, p in mesh.periodic_pairs.items()}
 
 

@@ -21,7 +21,8 @@ def read_mesh(path, box=None, periodic: bool = True):
         box: box lengths; default: the bounding box of the points (origin must be 0).
         periodic: rebuild periodic node pairs by translation (ValueError if the faces do not match).
     Returns:
-        Mesh with cell data `inclusion_id` when present (else all 0).
+        Mesh with cell data `inclusion_id` when present (.inp: from its element sets matrix and
+        inclusion_K; else all 0).
     """
     from .._mesh import Mesh, make_periodic_pairs
 
@@ -51,6 +52,8 @@ def read_mesh(path, box=None, periodic: bool = True):
             if key in m.cell_data:
                 ids = np.concatenate([np.asarray(m.cell_data[key][i]) for i in blocks]).astype(np.int64)
                 break
+        if ids is None:
+            ids = _ids_from_cell_sets(m.cell_sets, blocks, [len(m.cells[i].data) for i in blocks])
         inclusion_id = ids if ids is not None else np.zeros(len(cells), np.int64)
         if ids is not None and key == "gmsh:physical":
             inclusion_id = inclusion_id - 1  # jaxmesh writes physical tag = inclusion id + 1
@@ -81,6 +84,24 @@ def _read_with_meshio(path: Path):
         detail = " ".join(said.getvalue().split()) or f"{type(err).__name__}: {err}"
         raise ValueError(f"{path}: meshio could not read it as a mesh ({detail}); hint: jaxmesh writes .vtu, "
                          ".msh, .xdmf, .inp, .vtk and .npz meshes") from None
+
+
+def _ids_from_cell_sets(cell_sets: dict, blocks: list[int], sizes: list[int]) -> np.ndarray | None:
+    """inclusion_id from element sets named 'matrix' / 'inclusion_K' (jaxmesh's .inp), or None."""
+    named = {}
+    for name, per_block in cell_sets.items():
+        label = name.lower()
+        if label == "matrix" or (label.startswith("inclusion_") and label[len("inclusion_"):].isdigit()):
+            named[0 if label == "matrix" else int(label[len("inclusion_"):])] = per_block
+    if not named:
+        return None
+    ids = np.zeros(sum(sizes), np.int64)
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    for k, per_block in named.items():
+        for position, block in enumerate(blocks):
+            if block < len(per_block) and per_block[block] is not None:
+                ids[offsets[position] + np.asarray(per_block[block], np.int64)] = k
+    return ids
 
 
 def _in_written_order(points: np.ndarray, cells: np.ndarray, node_id) -> tuple[np.ndarray, np.ndarray]:
