@@ -64,6 +64,10 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     box = _box_arg(args.box) or (1.0,) * args.dim
     if len(box) != args.dim:
         raise ValueError(f"--box has {len(box)} lengths but --dim is {args.dim}; give one length per axis.")
+    if not all(math.isfinite(length) and length > 0 for length in box):
+        raise ValueError(f"--box: expected positive lengths, got {' '.join(f'{length:g}' for length in box)}")
+    if args.grid < 4:
+        raise ValueError(f"--grid: expected at least 4 samples along the shortest axis, got {args.grid}")
     grid_shape = _grid_shape(box, args.grid)
     if args.kind == "grf":
         phi = gen.excursion_set(
@@ -97,6 +101,13 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     # --n with --volume-fraction and no --radius: n inclusions at that fraction, sizes scaled to fill it
     fill = args.radius is None and args.n is not None and args.volume_fraction is not None
     radius = _DEFAULT_RADIUS if args.radius is None else args.radius
+    if fill:  # refuse at once what the placement would take minutes to draw and the mesher would refuse
+        unit_ball = 4.0 * math.pi / 3.0 if args.dim == 3 else math.pi
+        equal_radius = (args.volume_fraction * math.prod(box) / (args.n * unit_ball)) ** (1.0 / args.dim)
+        if equal_radius < 0.75 * step:
+            raise ValueError(f"--n {args.n} inclusions filling {args.volume_fraction:g} are about "
+                             f"{2 * equal_radius:.3g} across, under the 1.5 grid steps ({1.5 * step:.3g}) that the "
+                             "mesher needs; hint: fewer inclusions, a higher fraction or a finer --grid")
     specs = gen.random_inclusions(
         box, n=args.n, volume_fraction=args.volume_fraction, shape=shape,
         radius=(radius, args.radius_std),

@@ -139,6 +139,17 @@ def test_generate_with_count_and_fraction_gives_both(tmp_path, capsys):
     assert "note: the volume fraction was reached with 9 of the --n 40 inclusions" in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("options, message", [
+    (["--n", "3", "--grid", "0"], "--grid: expected at least 4 samples"),  # was a ZeroDivisionError
+    (["--n", "3", "--box", "0", "1", "1"], "--box: expected positive lengths, got 0 1 1"),  # the same
+    (["--n", "100000", "--volume-fraction", "0.3"], "are about 0.0179 across, under the 1.5 grid steps"),
+    (["--seed", "3"], "give --n, --volume-fraction or both"),
+])
+def test_generate_refuses_bad_options_at_once(tmp_path, capsys, options, message):
+    assert main(["generate", str(tmp_path / "g.npz"), *options]) == 2
+    assert message in capsys.readouterr().err and not list(tmp_path.iterdir())
+
+
 def test_compilation_cache_folder_from_the_environment(monkeypatch, tmp_path):
     from jaxmesh._compile_cache import CACHE_ENV, default_cache_dir
 
