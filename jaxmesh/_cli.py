@@ -61,6 +61,11 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     from . import _generate as gen
 
     t0 = time.perf_counter()
+    if Path(args.output).suffix.lower() != ".npz":
+        raise ValueError(f"generate writes an .npz (phi, box and the inclusions), got {args.output!r}; hint: name it "
+                         "*.npz")
+    if not Path(args.output).parent.is_dir():
+        raise ValueError(f"folder {str(Path(args.output).parent)!r} does not exist; hint: create it first")
     box = _box_arg(args.box) or (1.0,) * args.dim
     if len(box) != args.dim:
         raise ValueError(f"--box has {len(box)} lengths but --dim is {args.dim}; give one length per axis.")

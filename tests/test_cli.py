@@ -150,6 +150,16 @@ def test_generate_refuses_bad_options_at_once(tmp_path, capsys, options, message
     assert message in capsys.readouterr().err and not list(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("output, message", [
+    ("g.vtu", "generate writes an .npz"),  # it wrote an .npz under that name, which `jaxmesh mesh` refused
+    ("missing/g.npz", "folder 'missing' does not exist"),  # an OSError naming a temporary file
+])
+def test_generate_refuses_a_bad_output_at_once(tmp_path, capsys, monkeypatch, output, message):
+    monkeypatch.chdir(tmp_path)
+    assert main(["generate", output, "--n", "3"]) == 2
+    assert message in capsys.readouterr().err and not list(tmp_path.iterdir())
+
+
 def test_compilation_cache_folder_from_the_environment(monkeypatch, tmp_path):
     from jaxmesh._compile_cache import CACHE_ENV, default_cache_dir
 
