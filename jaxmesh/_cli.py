@@ -281,9 +281,13 @@ def _check_mesh_outputs(args: argparse.Namespace) -> None:
     written: an unknown mesh format, a plot that is not a PNG, a missing folder, or an output path that
     is the input or another output."""
     from ._plot import check_png_path
-    from .io._write import resolve_format
+    from .io._write import FORMATS, resolve_format
 
-    resolve_format(Path(args.output), None)
+    try:
+        resolve_format(Path(args.output), None)
+    except ValueError:
+        raise ValueError(f"-o {args.output}: the mesh format comes from the extension, one of "
+                         f"{', '.join(FORMATS)}") from None
     if args.plot:
         check_png_path(args.plot)
     taken = {Path(args.input).resolve(): "the input"}

@@ -253,7 +253,7 @@ def test_mesh_refuses_a_bad_roll_before_meshing(tmp_path, capsys, roll, extra, m
 
 
 @pytest.mark.parametrize("outputs, message", [
-    (["-o", "m.xyz"], "cannot tell the mesh format from 'm.xyz'"),
+    (["-o", "m.xyz"], "-o m.xyz: the mesh format comes from the extension, one of .vtu, .msh"),
     (["-o", "m.vtu", "--plot", "m.jpg"], "plots are written as PNG"),
     (["-o", "phi.npz"], "-o phi.npz is also the input, which it would overwrite"),
     (["-o", "m.vtu", "--report", "m.vtu"], "--report m.vtu is also -o"),

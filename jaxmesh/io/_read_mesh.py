@@ -88,11 +88,10 @@ def _read_with_meshio(path: Path):
 
 def _ids_from_cell_sets(cell_sets: dict, blocks: list[int], sizes: list[int]) -> np.ndarray | None:
     """inclusion_id from element sets named 'matrix' / 'inclusion_K' (jaxmesh's .inp), or None."""
-    named = {}
-    for name, per_block in cell_sets.items():
-        label = name.lower()
-        if label == "matrix" or (label.startswith("inclusion_") and label[len("inclusion_"):].isdigit()):
-            named[0 if label == "matrix" else int(label[len("inclusion_"):])] = per_block
+    from ._write import region_of_name
+
+    named = {region_of_name(name): per_block for name, per_block in cell_sets.items()}
+    named.pop(None, None)
     if not named:
         return None
     ids = np.zeros(sum(sizes), np.int64)

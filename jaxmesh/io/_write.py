@@ -71,8 +71,18 @@ def _points3(mesh) -> np.ndarray:
     return np.column_stack([mesh.points, np.zeros(mesh.n_points)])
 
 
-def _set_name(k: int) -> str:
+def region_name(k: int) -> str:
+    """Name of region k in the files (element sets, physical groups): 'matrix' or 'inclusion_k'."""
     return "matrix" if k == 0 else f"inclusion_{k}"
+
+
+def region_of_name(name: str) -> int | None:
+    """Inverse of `region_name` (any case); None for another name."""
+    label = name.lower()
+    if label == "matrix":
+        return 0
+    number = label.removeprefix("inclusion_")
+    return int(number) if number != label and number.isdigit() else None
 
 
 def write_mesh(mesh, path: str | Path, file_format: str | None = None) -> Path:
@@ -104,7 +114,7 @@ def write_mesh(mesh, path: str | Path, file_format: str | None = None) -> Path:
             _write_gmsh41(mesh, tmp)
         elif fmt == "abaqus":
             ids = mesh.inclusion_id
-            cell_sets = {_set_name(int(k)): [np.flatnonzero(ids == k)] for k in np.unique(ids)}
+            cell_sets = {region_name(int(k)): [np.flatnonzero(ids == k)] for k in np.unique(ids)}
             point_sets = {k: v for k, v in mesh.boundary_nodes().items() if len(v)}
             m = meshio.Mesh(mesh.points, [(CELL_TYPES[mesh.dim], mesh.cells)],
                             point_sets=point_sets, cell_sets=cell_sets)
@@ -217,7 +227,7 @@ def _write_gmsh41(mesh, tmp: Path) -> None:
     fnames = face_names(d)
     with open(tmp, "w") as fh:
         fh.write("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n")
-        phys = [(d, k + 1, _set_name(k)) for k in vol_ids] + [(d - 1, i + 1, n) for i, n in enumerate(fnames)]
+        phys = [(d, k + 1, region_name(k)) for k in vol_ids] + [(d - 1, i + 1, n) for i, n in enumerate(fnames)]
         fh.write(f"$PhysicalNames\n{len(phys)}\n")
         fh.writelines(f'{pd} {pt} "{pn}"\n' for pd, pt, pn in phys)
         fh.write("$EndPhysicalNames\n$Entities\n")
