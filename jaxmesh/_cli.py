@@ -107,7 +107,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     fill = args.radius is None and args.n is not None and args.volume_fraction is not None
     radius = _DEFAULT_RADIUS if args.radius is None else args.radius
     if fill:  # refuse at once what the placement would take minutes to draw and the mesher would refuse
-        unit_ball = 4.0 * math.pi / 3.0 if args.dim == 3 else math.pi
+        unit_ball = gen.unit_ball_volume(args.dim)
         equal_radius = (args.volume_fraction * math.prod(box) / (args.n * unit_ball)) ** (1.0 / args.dim)
         if equal_radius < 0.75 * step:
             raise ValueError(f"--n {args.n} inclusions filling {args.volume_fraction:g} are about "

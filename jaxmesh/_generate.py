@@ -29,7 +29,7 @@ __all__ = [
 ]
 
 
-def _ball(dim: int) -> float:
+def unit_ball_volume(dim: int) -> float:
     return math.pi ** (dim / 2) / math.gamma(dim / 2 + 1)
 
 
@@ -72,7 +72,7 @@ class InclusionSpec:
     @property
     def volume(self) -> float:
         """Volume (3D) or area (2D)."""
-        return _ball(self.dim) * float(np.prod(self.axes))
+        return unit_ball_volume(self.dim) * float(np.prod(self.axes))
 
 
 # ------------------------------------------------------------------------------------- validation
@@ -392,16 +392,16 @@ def _draw_pool(rng, draw, n, target, box_volume, tol, dim, scale_to_fraction=Fal
     if n is not None:
         axes = draw(n)
         if scale_to_fraction:
-            axes *= (target / (_ball(dim) * float(np.sum(np.prod(axes, axis=1))))) ** (1 / dim)
+            axes *= (target / (unit_ball_volume(dim) * float(np.sum(np.prod(axes, axis=1))))) ** (1 / dim)
     else:
         chunks, total = [], 0.0
         while total < target:
             chunks.append(draw(64))
-            total += _ball(dim) * float(np.sum(np.prod(chunks[-1], axis=1)))
+            total += unit_ball_volume(dim) * float(np.sum(np.prod(chunks[-1], axis=1)))
             if len(chunks) > 10_000:
                 raise ValueError("radius: the distribution draws radii too small for the target fraction.")
         axes = np.concatenate(chunks)
-        cum = np.cumsum(_ball(dim) * np.prod(axes, axis=1))
+        cum = np.cumsum(unit_ball_volume(dim) * np.prod(axes, axis=1))
         m = int(np.searchsorted(cum, target))  # first index reaching the target
         axes = axes[: m + 1].copy()
         before = cum[m - 1] if m > 0 else 0.0
@@ -511,7 +511,7 @@ def random_inclusions(
                "a larger box") + "."
         )
     rots = np.stack([_random_rotation(rng, dim) if shape == "ellipsoid" else np.eye(dim) for _ in axes])
-    vols = _ball(dim) * np.prod(axes, axis=1)
+    vols = unit_ball_volume(dim) * np.prod(axes, axis=1)
 
     pack = _Packing(box, axes, rots, float(min_gap), shape == "sphere", box_gap)
     committed, deferred, batch = 0.0, [], 32
