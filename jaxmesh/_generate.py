@@ -97,9 +97,9 @@ def _check_grid(grid_shape, dim: int) -> tuple[int, ...]:
     return g
 
 
-def _checked_seed(seed) -> int:
+def checked_seed(seed, name: str = "seed") -> int:
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
-        raise ValueError(f"seed: expected an integer >= 0, got {seed!r}.")
+        raise ValueError(f"{name}: expected an integer >= 0, got {seed!r}.")
     return int(seed)
 
 
@@ -495,7 +495,7 @@ def random_inclusions(
     if shape == "ellipsoid" and not 1.0 <= lo_k <= hi_k:
         raise ValueError(f"aspect: expected 1 <= aspect[0] <= aspect[1], got {aspect!r}.")
 
-    rng = np.random.default_rng(_checked_seed(seed))
+    rng = np.random.default_rng(checked_seed(seed))
     box_volume = float(np.prod(box))
     target = volume_fraction * box_volume if volume_fraction is not None else np.inf
     sampler = _radius_sampler(radius)
@@ -696,7 +696,7 @@ def excursion_set(box, grid_shape, *, correlation_length: float, volume_fraction
             f"correlation_length: expected between one grid step {h.max():.4g} and the box {box.min():.4g}, got "
             f"{correlation_length!r}. Hint: refine the grid or choose l of a few percent of the box."
         )
-    field = gaussian_random_field(box, shape, correlation_length, _checked_seed(seed))
+    field = gaussian_random_field(box, shape, correlation_length, checked_seed(seed))
     target, best = volume_fraction, None
     tol = min(_FRACTION_TOL, _FRACTION_RTOL * target)
     lo, hi, level, bracketed = 0.0, 1.0, target, False

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ._errors import MeshingError
+from ._generate import checked_seed
 
 
 _FIELD_HINTS = {
@@ -109,8 +110,7 @@ class MeshConfig:
                 raise ValueError(
                     f"MeshConfig.{name}: expected a positive finite number, got {value!r}; hint: {_FIELD_HINTS[name]}"
                 )
-        if not isinstance(self.seed, (int, np.integer)) or isinstance(self.seed, bool) or self.seed < 0:
-            raise ValueError(f"MeshConfig.seed: expected an integer >= 0 (NumPy's seeds), got {self.seed!r}")
+        checked_seed(self.seed, "MeshConfig.seed")
         if self.backend not in ("conforming", "tetwild"):
             raise ValueError(f"MeshConfig.backend: expected 'conforming' or 'tetwild', got {self.backend!r}")
         if self.interior not in ("bcc", "octree"):

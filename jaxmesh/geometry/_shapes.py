@@ -11,7 +11,6 @@ through the root use the implicit-function theorem (optimistix's `ImplicitAdjoin
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import jax
@@ -19,6 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
+
+from .._generate import unit_ball_volume
 
 __all__ = ["ellipsoid_sdf", "ellipsoid_volume", "sphere_sdf", "sphere_volume"]
 
@@ -214,10 +215,6 @@ def ellipsoid_sdf(
     return jax.tree_util.Partial(_ellipsoid_phi, jnp.asarray(center), jnp.asarray(axes), jnp.asarray(rotation))
 
 
-def _unit_ball_volume(dim: int) -> float:
-    return math.pi ** (dim / 2) / math.gamma(dim / 2 + 1)
-
-
 def ellipsoid_volume(axes: Float[ArrayLike, " d"]):
     """Volume (3D) or area (2D) of the ellipsoid with semi-axes axes (d,): omega_d * prod(a_i).
 
@@ -227,11 +224,11 @@ def ellipsoid_volume(axes: Float[ArrayLike, " d"]):
     prod = axes[0]
     for i in range(1, dim):
         prod = prod * axes[i]
-    return _unit_ball_volume(dim) * prod
+    return unit_ball_volume(dim) * prod
 
 
 def sphere_volume(radius, dim: int = 3):
     """Volume (dim=3) or area (dim=2) of a ball of the given radius: omega_d * r^d."""
     if dim not in (2, 3):
         raise ValueError(f"sphere_volume: expected dim 2 or 3, got {dim}.")
-    return _unit_ball_volume(dim) * radius**dim
+    return unit_ball_volume(dim) * radius**dim

@@ -47,16 +47,10 @@ def read_mesh(path, box=None, periodic: bool = True):
         if not blocks:
             raise ValueError(f"{path}: expected triangle or tetra cells, found {[b.type for b in m.cells]}")
         cells = np.concatenate([m.cells[i].data for i in blocks]).astype(np.int64)
-        ids = None
-        for key in ("inclusion_id", "gmsh:physical", "medit:ref"):
-            if key in m.cell_data:
-                ids = np.concatenate([np.asarray(m.cell_data[key][i]) for i in blocks]).astype(np.int64)
-                break
+        ids = _ids_from_cell_data(m.cell_data, blocks)
         if ids is None:
             ids = _ids_from_cell_sets(m.cell_sets, blocks, [len(m.cells[i].data) for i in blocks])
         inclusion_id = ids if ids is not None else np.zeros(len(cells), np.int64)
-        if ids is not None and key == "gmsh:physical":
-            inclusion_id = inclusion_id - 1  # jaxmesh writes physical tag = inclusion id + 1
         points, cells = _in_written_order(points, cells, m.point_data.get("node_id"))
     lower = points.min(axis=0)
     if np.any(np.abs(lower) > 1e-9 * np.ptp(points, axis=0).max()):
@@ -67,6 +61,17 @@ def read_mesh(path, box=None, periodic: bool = True):
     pairs = make_periodic_pairs(points, box) if periodic else {}
     return Mesh(points=points, cells=cells, inclusion_id=inclusion_id, box=box, periodic=periodic,
                 periodic_pairs=pairs, metadata={"source": str(path)})
+
+
+# Cell-data keys that carry the inclusion id, with what jaxmesh's writers add to it.
+_ID_KEYS = {"inclusion_id": 0, "gmsh:physical": 1, "medit:ref": 0}
+
+
+def _ids_from_cell_data(cell_data, blocks: list[int]) -> np.ndarray | None:
+    for key, offset in _ID_KEYS.items():
+        if key in cell_data:
+            return np.concatenate([np.asarray(cell_data[key][i]) for i in blocks]).astype(np.int64) - offset
+    return None
 
 
 def _read_with_meshio(path: Path):
