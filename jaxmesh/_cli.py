@@ -368,6 +368,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     mesh = read_mesh(args.mesh, box=_box_arg(args.box), periodic=not args.no_periodic)
     ms = None
     if args.geometry:
+        _read_as_meshed(args, mesh.metadata.get("input_reading", {}))
         ms, _ = _as_microstructure(args.geometry, box=_box_arg(args.box) or tuple(mesh.box), periodic=mesh.periodic,
                                    roll=_roll_arg(args.roll), redistance=args.redistance)
     report = validate(mesh, ms)
@@ -383,6 +384,19 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 
 _GEOMETRY_CHECKS = {"interface", "labels", "connectivity"}  # the checks that read the input
+
+
+def _read_as_meshed(args: argparse.Namespace, reading: dict) -> None:
+    """Fill --roll / --redistance, where not given, from the input reading the mesh file carries."""
+    taken = []
+    if args.roll is None and reading.get("roll_samples"):
+        args.roll = [str(k) for k in reading["roll_samples"]]
+        taken.append("--roll " + " ".join(args.roll))
+    if not args.redistance and reading.get("redistanced"):
+        args.redistance = True
+        taken.append("--redistance")
+    if taken:
+        print(f"    reading the input as the mesh file says it was meshed: {' '.join(taken)}")
 
 
 def _another_reading(mesh, args: argparse.Namespace, ms) -> str:
@@ -494,8 +508,10 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--report", default=None, help="JSON report path")
     v.add_argument("--no-periodic", action="store_true", help="a plain box mesh: no periodic node pairs to check")
     v.add_argument("--roll", nargs="+", default=None, metavar="auto|K",
-                   help="the --roll the mesh was made with (the geometry is read rolled the same way)")
-    v.add_argument("--redistance", action="store_true", help="the mesh was made with --redistance")
+                   help="the --roll the mesh was made with (the geometry is read rolled the same way; default: "
+                        "what a .vtu, .msh, .xdmf, .inp or .npz written by jaxmesh says)")
+    v.add_argument("--redistance", action="store_true",
+                   help="the mesh was made with --redistance (default: what the mesh file says, as for --roll)")
     v.set_defaults(func=_cmd_validate)
     return parser
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from jaxmesh._cli import main
+from jaxmesh.io import read_mesh, write_mesh
 
 
 def test_generate_info_mesh_validate_2d(tmp_path, capsys):
@@ -281,7 +282,10 @@ def test_mesh_and_validate_with_roll_auto(tmp_path, capsys):
     assert re.search(r"rolled by \(\d+, \d+, \d+\) samples", capsys.readouterr().out)
     assert main(["validate", str(out), "--geometry", str(phi), "--roll", "auto"]) == 0
     capsys.readouterr()
-    assert main(["validate", str(out), "--geometry", str(phi)]) == 1
+    assert main(["validate", str(out), "--geometry", str(phi)]) == 0  # the .vtu says how it was read
+    assert re.search(r"as the mesh file says it was meshed: --roll \d+ \d+ \d+\n", capsys.readouterr().out)
+    legacy = write_mesh(read_mesh(out), tmp_path / "m.vtk")  # legacy VTK carries no field data
+    assert main(["validate", str(legacy), "--geometry", str(phi)]) == 1
     assert "hint: valid with --roll auto: the input read so" in capsys.readouterr().out
 
 
@@ -303,5 +307,8 @@ def test_mesh_and_validate_with_redistance(tmp_path, capsys):
     capsys.readouterr()
     assert main(["validate", str(out), "--geometry", str(phi), "--redistance"]) == 0
     capsys.readouterr()
-    assert main(["validate", str(out), "--geometry", str(phi)]) == 1
+    assert main(["validate", str(out), "--geometry", str(phi)]) == 0
+    assert "as the mesh file says it was meshed: --redistance\n" in capsys.readouterr().out
+    legacy = write_mesh(read_mesh(out), tmp_path / "m.vtk")
+    assert main(["validate", str(legacy), "--geometry", str(phi)]) == 1
     assert "hint: valid with --redistance: the input read so is what the mesh follows" in capsys.readouterr().out

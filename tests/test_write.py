@@ -301,6 +301,27 @@ def test_read_mesh_gives_back_what_was_written(mesh, tmp_path, suffix):
     assert {a: len(p) for a, p in back.periodic_pairs.items()} == {a: len(p) for a, p in mesh.periodic_pairs.items()}
 
 
+@pytest.mark.parametrize("suffix", [".vtu", ".msh", ".xdmf", ".vtk", ".npz", ".inp"])
+def test_files_carry_how_the_input_was_read(mesh, tmp_path, suffix):
+    """A rolled, redistanced run's mesh file says so (`jaxmesh validate --geometry` reads the input the
+    same way); meshio still reads every file; legacy .vtk carries nothing."""
+    import dataclasses
+
+    from jaxmesh.io import read_mesh
+
+    d = mesh.dim
+    meta = {"roll": {"samples": [3] * d, "offset": [0.125] * d}, "parameters": {"redistance": True}}
+    rolled = dataclasses.replace(mesh, metadata=meta)
+    path = write_mesh(rolled, tmp_path / f"m{suffix}")
+    expected = {} if suffix == ".vtk" else {"roll_samples": [3] * d, "roll_offset": [0.125] * d, "redistanced": True}
+    assert read_mesh(path, box=mesh.box).metadata["input_reading"] == expected
+    if suffix not in (".npz", ".xdmf"):  # meshio reads .xdmf only with h5py
+        cell_type = "tetra" if d == 3 else "triangle"
+        assert sum(len(b.data) for b in meshio.read(path).cells if b.type == cell_type) == mesh.n_cells
+    as_given = write_mesh(mesh, tmp_path / f"given{suffix}")
+    assert read_mesh(as_given, box=mesh.box).metadata["input_reading"] == {}
+
+
 @pytest.mark.parametrize("name, content, message", [
     ("m.vtu", b"garbage", "meshio could not read it as a mesh (Error: Couldn't read file"),
     ("m.msh", b"garbage", "meshio could not read it as a mesh"),

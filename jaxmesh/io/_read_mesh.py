@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
+import os
 from pathlib import Path
 
 import numpy as np
+
+from ._write import INPUT_READING_TAG, input_reading, region_of_name
 
 _CELL_TYPES = {2: "triangle", 3: "tetra"}
 
@@ -22,7 +26,9 @@ def read_mesh(path, box=None, periodic: bool = True):
         periodic: rebuild periodic node pairs by translation (ValueError if the faces do not match).
     Returns:
         Mesh with cell data `inclusion_id` when present (.inp: from its element sets matrix and
-        inclusion_K; else all 0).
+        inclusion_K; else all 0); metadata["input_reading"]: how jaxmesh read the input it meshed
+        (roll_samples / roll_offset, redistanced; {} when as given or not written by jaxmesh; .vtk
+        files do not carry it).
     """
     from .._mesh import Mesh, make_periodic_pairs
 
@@ -36,8 +42,9 @@ def read_mesh(path, box=None, periodic: bool = True):
                                  f"{sorted(data.files)}; hint: an input file (phi or labels) goes to --geometry")
             points, cells = data["points"], data["cells"]
             inclusion_id = data["inclusion_id"] if "inclusion_id" in data else np.zeros(len(cells), np.int64)
+            reading = input_reading(json.loads(str(data["metadata_json"]))) if "metadata_json" in data else {}
     elif path.suffix.lower() == ".xdmf" and _inline_xml(path):
-        points, cells, inclusion_id = _read_xdmf_xml(path)
+        points, cells, inclusion_id, reading = _read_xdmf_xml(path)
     else:
         m = _read_with_meshio(path)
         points = np.asarray(m.points, dtype=np.float64)
@@ -52,6 +59,7 @@ def read_mesh(path, box=None, periodic: bool = True):
             ids = _ids_from_cell_sets(m.cell_sets, blocks, [len(m.cells[i].data) for i in blocks])
         inclusion_id = ids if ids is not None else np.zeros(len(cells), np.int64)
         points, cells = _in_written_order(points, cells, m.point_data.get("node_id"))
+        reading = _reading_of(path, m.field_data)
     lower = points.min(axis=0)
     if np.any(np.abs(lower) > 1e-9 * np.ptp(points, axis=0).max()):
         raise ValueError(f"{path}: expected a box with its origin at 0, the points start at {lower.tolist()}")
@@ -60,7 +68,7 @@ def read_mesh(path, box=None, periodic: bool = True):
         raise ValueError(f"box has {len(box)} lengths, the mesh is {points.shape[1]}D")
     pairs = make_periodic_pairs(points, box) if periodic else {}
     return Mesh(points=points, cells=cells, inclusion_id=inclusion_id, box=box, periodic=periodic,
-                periodic_pairs=pairs, metadata={"source": str(path)})
+                periodic_pairs=pairs, metadata={"source": str(path), "input_reading": reading})
 
 
 # Cell-data keys that carry the inclusion id, with what jaxmesh's writers add to it.
@@ -72,6 +80,28 @@ def _ids_from_cell_data(cell_data, blocks: list[int]) -> np.ndarray | None:
         if key in cell_data:
             return np.concatenate([np.asarray(cell_data[key][i]) for i in blocks]).astype(np.int64) - offset
     return None
+
+
+def _reading_of(path: Path, field_data: dict) -> dict:
+    """The input reading a file written by jaxmesh carries (`_write.input_reading`): .vtu field data,
+    the .msh section or the .inp comment line that meshio skips; {} when it carries none."""
+    prefix = INPUT_READING_TAG + "_"
+    reading = {k.removeprefix(prefix): np.asarray(v).ravel().tolist() for k, v in field_data.items()
+               if k.startswith(prefix)}
+    if "redistanced" in reading:
+        reading["redistanced"] = bool(reading["redistanced"][0])
+    if reading or path.suffix.lower() not in (".msh", ".inp"):
+        return reading
+    with open(path, "rb") as fh:  # .inp: in the first lines; .msh: the last section
+        if path.suffix.lower() == ".msh":
+            fh.seek(max(0, fh.seek(0, os.SEEK_END) - 4096))
+        lines = [line.strip() for line in fh.read(4096).decode(errors="replace").splitlines()]
+    for i, line in enumerate(lines):
+        if line == f"${INPUT_READING_TAG}" and i + 1 < len(lines):
+            return json.loads(lines[i + 1])
+        if line.startswith(f"** {INPUT_READING_TAG} "):
+            return json.loads(line.removeprefix(f"** {INPUT_READING_TAG} "))
+    return {}
 
 
 def _read_with_meshio(path: Path):
@@ -93,8 +123,6 @@ def _read_with_meshio(path: Path):
 
 def _ids_from_cell_sets(cell_sets: dict, blocks: list[int], sizes: list[int]) -> np.ndarray | None:
     """inclusion_id from element sets named 'matrix' / 'inclusion_K' (jaxmesh's .inp), or None."""
-    from ._write import region_of_name
-
     named = {region_of_name(name): per_block for name, per_block in cell_sets.items()}
     named.pop(None, None)
     if not named:
@@ -131,8 +159,8 @@ def _inline_xml(path: Path) -> bool:
     return all(item.get("Format", "XML") == "XML" for item in items)
 
 
-def _read_xdmf_xml(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(points, cells, inclusion_id) of an inline-XML XDMF file with one grid of triangles or tetrahedra
+def _read_xdmf_xml(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """(points, cells, inclusion_id, input reading) of an inline-XML XDMF file with one grid of triangles or tetrahedra
     (meshio's reader needs h5py even for inline data)."""
     import xml.etree.ElementTree as ET
 
@@ -148,4 +176,6 @@ def _read_xdmf_xml(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     cells = values(grid.find("Topology/DataItem"), np.int64)
     ids = next((values(a.find("DataItem"), np.int64).ravel() for a in grid.findall("Attribute")
                 if a.get("Name") == "inclusion_id" and a.get("Center") == "Cell"), None)
-    return points, cells, np.zeros(len(cells), np.int64) if ids is None else ids
+    info = next((i.get("Value") for i in grid.findall("Information") if i.get("Name") == INPUT_READING_TAG), None)
+    return (points, cells, np.zeros(len(cells), np.int64) if ids is None else ids,
+            {} if info is None else json.loads(info))

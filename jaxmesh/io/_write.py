@@ -71,6 +71,39 @@ def _points3(mesh) -> np.ndarray:
     return np.column_stack([mesh.points, np.zeros(mesh.n_points)])
 
 
+def input_reading(metadata: dict) -> dict:
+    """How the mesh's input was read, as the files carry it: {"roll_samples", "roll_offset"} when the
+    grid was rolled, {"redistanced": True} when redistanced; {} when read as given. `jaxmesh validate
+    --geometry` reads the input the same way (`read_mesh` puts it in metadata["input_reading"])."""
+    meta = metadata or {}
+    out = {}
+    if meta.get("roll"):
+        out["roll_samples"] = [int(k) for k in meta["roll"]["samples"]]
+        out["roll_offset"] = [float(v) for v in meta["roll"]["offset"]]
+    if (meta.get("parameters") or {}).get("redistance"):
+        out["redistanced"] = True
+    return out
+
+
+INPUT_READING_TAG = "jaxmesh_input"  # the .msh section, .xdmf Information and .inp comment that hold it
+
+
+def _vtu_field_data(path: Path, reading: dict) -> None:
+    """Add the input reading as numeric FieldData (meshio's VTU writer drops field_data), one array
+    per key: ParaView shows them under the dataset's field data."""
+    if not reading:
+        return
+    arrays = "".join(
+        f'<DataArray type="{"Float64" if isinstance(v[0], float) else "Int64"}" Name="{INPUT_READING_TAG}_{k}" '
+        f'NumberOfTuples="{len(v)}" format="ascii">{" ".join(repr(x) for x in v)}</DataArray>'
+        for k, v in ((k, v if isinstance(v, list) else [int(v)]) for k, v in reading.items()))
+    text = path.read_bytes()
+    head = b"<UnstructuredGrid>"
+    if text.count(head) != 1:
+        raise RuntimeError(f"{path}: expected one <UnstructuredGrid> in meshio's VTU output")
+    path.write_bytes(text.replace(head, head + f"<FieldData>{arrays}</FieldData>".encode()))
+
+
 def region_name(k: int) -> str:
     """Name of region k in the files (element sets, physical groups): 'matrix' or 'inclusion_k'."""
     return "matrix" if k == 0 else f"inclusion_{k}"
@@ -119,6 +152,7 @@ def write_mesh(mesh, path: str | Path, file_format: str | None = None) -> Path:
             m = meshio.Mesh(mesh.points, [(CELL_TYPES[mesh.dim], mesh.cells)],
                             point_sets=point_sets, cell_sets=cell_sets)
             meshio.write(tmp, m, file_format="abaqus")
+            _abaqus_comment(tmp, input_reading(mesh.metadata))
         elif fmt == "xdmf":
             _write_xdmf(mesh, tmp)
         else:
@@ -126,6 +160,8 @@ def write_mesh(mesh, path: str | Path, file_format: str | None = None) -> Path:
                             point_data=_boundary_flags(mesh),
                             cell_data={name: [values] for name, values in mesh.cell_arrays().items()})
             meshio.write(tmp, m, file_format=fmt)
+            if fmt == "vtu":
+                _vtu_field_data(tmp, input_reading(mesh.metadata))
     return path
 
 
@@ -158,7 +194,19 @@ def _write_xdmf(mesh, tmp: Path) -> None:
         for name, values in data.items():
             att = ET.SubElement(grid, "Attribute", Name=name, AttributeType="Scalar", Center=center)
             _xdmf_item(att, values)
+    reading = input_reading(mesh.metadata)
+    if reading:
+        ET.SubElement(grid, "Information", Name=INPUT_READING_TAG, Value=json.dumps(reading))
     ET.ElementTree(root).write(tmp, xml_declaration=True, encoding="utf-8")
+
+
+def _abaqus_comment(path: Path, reading: dict) -> None:
+    """The input reading as a comment line before the nodes (readers skip '**' lines)."""
+    if reading:
+        text = path.read_text()
+        if "\n*NODE" not in text:
+            raise RuntimeError(f"{path}: expected a *NODE keyword in meshio's Abaqus output")
+        path.write_text(text.replace("\n*NODE", f"\n** {INPUT_READING_TAG} {json.dumps(reading)}\n*NODE", 1))
 
 
 def _write_npz(mesh, tmp: Path) -> None:
@@ -288,3 +336,6 @@ def _write_gmsh41(mesh, tmp: Path) -> None:
         fh.write(f'$NodeData\n1\n"node_id"\n1\n0\n3\n0\n1\n{len(pts)}\n')
         _fmt_rows(fh, np.column_stack([np.arange(1, len(pts) + 1), order]))
         fh.write("$EndNodeData\n")
+        reading = input_reading(mesh.metadata)
+        if reading:  # last: Gmsh and meshio skip sections they do not know, simpler readers stop before
+            fh.write(f"${INPUT_READING_TAG}\n{json.dumps(reading)}\n$End{INPUT_READING_TAG}\n")
