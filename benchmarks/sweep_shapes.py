@@ -5,7 +5,7 @@ non-cubic box, a sphere near its images, spheres on a box corner / edge, Gaussia
 sets from `jaxmesh generate --kind grf`, percolating inclusions: endless fibres, a gyroid
 network, percolating excursion sets; and fields written as users write them: random spheres
 placed with no box clearance, algebraic ellipsoid fields and thresholded random fields that are not
-distances), runs `jaxmesh mesh` on it and prints one line per case. With --no-periodic the same fields are meshed as plain boxes
+distances, distance transforms of voxel images and a quantised distance), runs `jaxmesh mesh` on it and prints one line per case. With --no-periodic the same fields are meshed as plain boxes
 (`jaxmesh mesh --no-periodic`: the box cuts the inclusions, each piece one inclusion).
     .venv/bin/python benchmarks/sweep_shapes.py [OUT_DIR] [--only NAME ...] [--build-only] [--no-periodic]
 """
@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from jaxmesh._generate import gaussian_random_field
@@ -307,6 +308,35 @@ def case_fibres_crossing(out: Path, n=40):
     return p, [], "two endless fibres, along z and along x, r 0.12"
 
 
+def _voxel_distance(inside: np.ndarray) -> np.ndarray:
+    """The signed Euclidean distance transform of a periodic voxel set, in box units (unit box), as
+    users make a level set from an image: scipy's transform of the image tiled 3 x 3 x 3, the middle kept."""
+    n = inside.shape[0]
+    tiled = np.tile(inside, (3, 3, 3))
+    signed = ndimage.distance_transform_edt(~tiled) - ndimage.distance_transform_edt(tiled)
+    return signed[n:2 * n, n:2 * n, n:2 * n] / n
+
+
+def _voxel_sphere(name: str, options: list[str], quantise: bool = False, n: int = 48, r: float = 0.3):
+    def case(out: Path):
+        dist = sd_sphere(_local(_grid(n), (0.5, 0.5, 0.5)), r)
+        phi = (np.round(dist * n) + 0.5) / n if quantise else _voxel_distance(dist < 0)
+        np.save(p := out / f"{name}.npy", phi)
+        how = "its distance rounded to whole grid steps" if quantise else "the distance transform of its voxels"
+        return p, options, f"sphere r {r}, {n}^3, {how}"
+    return case
+
+
+def case_voxel_spheres(out: Path, n=64, seed=7, count=12):
+    def make(rng):
+        r = rng.uniform(0.08, 0.13)
+        return (lambda p: sd_sphere(p, r)), r
+
+    shapes = _place(np.random.default_rng(seed), make, count, gap=0.06)
+    np.save(p := out / "voxel_spheres.npy", _voxel_distance(_union(shapes, n) < 0))
+    return p, [], f"{count} spheres, {n}^3, the distance transform of their voxels"
+
+
 def _gyroid(name: str, level: float, n: int):
     def build(out: Path):
         t = 2 * np.pi * _grid(n)
@@ -354,6 +384,10 @@ CASES = {
     "numpy_spheres_s2": _numpy_spheres(2, 40, 48),
     "algebraic_ellipsoids": case_algebraic_ellipsoids,
     "numpy_spheres_mm": case_numpy_spheres_mm,
+    "voxel_sphere": _voxel_sphere("voxel_sphere", []),
+    "voxel_sphere_pointwise": _voxel_sphere("voxel_sphere", ["--curv-average", "0"]),
+    "quantised_sphere": _voxel_sphere("quantised_sphere", [], quantise=True),
+    "voxel_spheres": case_voxel_spheres,
 }
 
 

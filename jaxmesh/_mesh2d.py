@@ -236,7 +236,7 @@ class _Size:
     desc: object = None  # float h or "field", for the metadata
 
 
-def _resolve_size(ms, h, size_kwargs) -> _Size:
+def _resolve_size(ms, h, size_kwargs, curvature_average: float | None = None) -> _Size:
     box = np.asarray(ms.box, dtype=float)
     if h is None or size_kwargs:
         if h is not None:
@@ -245,7 +245,8 @@ def _resolve_size(ms, h, size_kwargs) -> _Size:
         from ._pipeline import default_iis
         from ._sizing import SizeParams, size_function
 
-        h = size_function(ms, SizeParams(**{"iis": default_iis(ms.box), **size_kwargs}))
+        h = size_function(ms, SizeParams(**{"iis": default_iis(ms.box), **size_kwargs}),
+                          curvature_average=curvature_average)
     if isinstance(h, (int, float, np.floating, np.integer)) and not isinstance(h, bool):
         h = float(h)
         if not (np.isfinite(h) and 0 < h <= 0.25 * box.min()):
@@ -491,6 +492,7 @@ def mesh_2d(
     curv_alpha: float | None = None,
     grad: float | None = None,
     h_max: float | None = None,
+    curvature_average: float | None = None,
 ):
     """Conforming, labelled triangle mesh of a 2D microstructure, periodic or not (as it is).
 
@@ -503,6 +505,8 @@ def mesh_2d(
             (only the given ones; the others take SizeParams' defaults, and iis 0.05 times the box's mean
             side, as `MeshConfig`).
         config: :class:`Mesh2DConfig`. seed: random seed of the interior node jitter.
+        curvature_average: grid steps over which the size function averages the curvature (see
+            `size_function`; 0: pointwise; None: where the interface ripples at the grid scale).
     Returns:
         ``Mesh`` with triangles (counter-clockwise), ``inclusion_id`` per triangle (0 = matrix),
         ``periodic`` as the microstructure, ``periodic_pairs`` {0: (x=0 node, x=Lx node), 1: (y=0
@@ -529,7 +533,7 @@ def mesh_2d(
     ms = _as_microstructure(microstructure)
     kw = {k: v for k, v in dict(iis=iis, nb_el=nb_el, curv_alpha=curv_alpha, grad=grad, h_max=h_max).items()
           if v is not None}
-    size = _resolve_size(ms, h, kw)
+    size = _resolve_size(ms, h, kw, curvature_average)
     rng = np.random.default_rng(seed)
     box = np.asarray(ms.box, dtype=float)
     lap("size")

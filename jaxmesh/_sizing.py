@@ -38,7 +38,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from scipy import ndimage
 
 from ._periodic import minimum_image, wrap
-from .geometry._differential import max_abs_curvature
+from .geometry._differential import curvatures
 from .geometry._microstructure import _traceable
 from .geometry._grid import interpolate_linear
 
@@ -492,6 +492,7 @@ class SizeField(eqx.Module):
     Attributes:
         values: (nx, ny[, nz]) sizes at the grid nodes; box: (d,) cell lengths (static).
         source_points: (s, d) interface source points, or None; source_h0: (s,) their sizes.
+        curvature_averaged: ids of the inclusions whose curvature was averaged (`size_sources`).
 
     Example:
         >>> h = size_function(ms, SizeParams(iis=0.05))
@@ -502,6 +503,7 @@ class SizeField(eqx.Module):
     box: tuple[float, ...] = eqx.field(static=True, converter=lambda b: tuple(float(x) for x in b))
     source_points: Float[Array, "s d"] | None = None
     source_h0: Float[Array, " s"] | None = None
+    curvature_averaged: tuple[int, ...] = eqx.field(static=True, default=())  # see SizeSources
 
     def __call__(self, points: Float[ArrayLike, "m d"]) -> Float[Array, " m"]:
         """h at (m, d) points (periodic)."""
@@ -525,10 +527,75 @@ class SizeSources(NamedTuple):
     dn2: Array  # (s,) DN2 at the sources (linear interpolation of the grid), or the self_gaps when narrower
     kappa: Array  # (s,) max |principal curvature| of each source's own inclusion
     box_gap: np.ndarray | None = None  # (s,) box_gaps (None: no such term)
+    curvature_averaged: tuple[int, ...] = ()  # ids of the inclusions whose curvature was averaged
 
 
-def _curvature(phi_fn: Callable, points: np.ndarray) -> np.ndarray:
-    """max_abs_curvature of one inclusion at (m, d) points, padded to a power-of-two bucket.
+def _max_abs_from(mean: np.ndarray, gaussian: np.ndarray, dim: int) -> np.ndarray:
+    """max(|k1|, |k2|) = |mean| + sqrt(mean^2 - gaussian) (3D), |curvature| (2D)."""
+    if dim == 2:
+        return np.abs(mean)
+    return np.abs(mean) + np.sqrt(np.maximum(mean * mean - gaussian, 0.0))
+
+
+def _averaged_over_neighbours(points: np.ndarray, values: tuple[np.ndarray, ...], radius: float, box,
+                              periodic: bool) -> tuple[np.ndarray, ...]:
+    """Each value averaged over the points within radius (periodic distances when periodic)."""
+    from scipy.spatial import cKDTree
+
+    box = np.asarray(box, float)
+    if periodic:
+        points = points - box * np.floor(points / box)
+        points = np.where(points >= box, 0.0, points)  # floor rounding can leave x == L
+    tree = cKDTree(points, boxsize=box if periodic else None)
+    pairs = tree.query_pairs(radius, output_type="ndarray")
+    rows = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(len(points))])
+    cols = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(len(points))])
+    count = np.bincount(rows, minlength=len(points))
+    return tuple(np.bincount(rows, weights=v[cols], minlength=len(points)) / count for v in values)
+
+
+AUTO_CURVATURE_AVERAGE = 1.5  # grid steps: one ripple period of a field sampled from voxels
+# An interface ripples when half of it curves with radii under two grid steps (median pointwise
+# |kappa| step above 0.5) and the average cancels most of it (median below 0.4 of the pointwise).
+# Measured (median kappa step, ratio): distance transforms of voxel spheres and quantised fields
+# (1.0-1.3, 0.12-0.25); smooth shapes, thresholded random fields, labelled images, rounded boxes,
+# a needle tip (0.05-0.87, 0.36-1.8 where above 0.5: 0.86 and more).
+_RIPPLE_CURVATURE_STEPS = 0.5
+_RIPPLE_RATIO = 0.4
+
+
+def _curvature(phi_fn: Callable, points: np.ndarray, average: float | None, step: float, box,
+               periodic: bool) -> tuple[np.ndarray, bool]:
+    """(max |principal curvature| of one inclusion at (m, d) points, whether it was averaged).
+
+    average > 0: from its mean and Gaussian curvatures averaged over the points within that many
+    grid steps (`_averaged_over_neighbours`). Ripples finer than the grid (the cubic interpolant
+    of a field sampled from voxels: a distance transform of an image, a quantised field) alternate
+    in sign and cancel; a curvature the grid resolves keeps its value (a sphere's exactly).
+    0: pointwise. None: averaged over AUTO_CURVATURE_AVERAGE steps where the interface ripples
+    (see _RIPPLE_RATIO), else pointwise.
+    """
+    mean, gaussian, pointwise = _curvature_terms(phi_fn, points)
+    if average == 0.0:
+        return pointwise, False
+    radius = (AUTO_CURVATURE_AVERAGE if average is None else average) * step
+    averaged = _max_abs_from(*_averaged_over_neighbours(points, (mean, gaussian), radius, box, periodic),
+                             points.shape[1])
+    typical = np.median(pointwise)
+    if average is None and not (typical * step > _RIPPLE_CURVATURE_STEPS
+                                and np.median(averaged) < _RIPPLE_RATIO * typical):
+        return pointwise, False
+    return averaged, True
+
+
+def _mean_gaussian_max_abs(phi_fn: Callable, points: Array) -> tuple[Array, Array, Array]:
+    c = curvatures(phi_fn, points)
+    return c.mean, c.gaussian, jnp.maximum(jnp.abs(c.k1), jnp.abs(c.k2))
+
+
+def _curvature_terms(phi_fn: Callable, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(mean, Gaussian, max |principal|) curvatures of one inclusion at (m, d) points, padded to a
+    power-of-two bucket.
 
     A PyTree phi_fn (Partial, eqx.Module: grid-based inclusions) is traced, so one compilation
     serves all inclusions of a bucket; an opaque closure (analytic inclusions) would compile once
@@ -538,9 +605,11 @@ def _curvature(phi_fn: Callable, points: np.ndarray) -> np.ndarray:
     size = max(64, 1 << (m - 1).bit_length())
     padded = jnp.asarray(np.concatenate([points, np.repeat(points[-1:], size - m, axis=0)]))
     if _traceable(phi_fn):
-        return np.asarray(max_abs_curvature(phi_fn, padded))[:m]
-    with jax.disable_jit():
-        return np.asarray(max_abs_curvature(phi_fn, padded))[:m]
+        out = _mean_gaussian_max_abs(phi_fn, padded)
+    else:
+        with jax.disable_jit():
+            out = _mean_gaussian_max_abs(phi_fn, padded)
+    return tuple(np.asarray(v)[:m] for v in out)
 
 
 def _grid_normals(dn1: np.ndarray, box, points, periodic: bool = True) -> np.ndarray:
@@ -615,19 +684,32 @@ def self_gaps(points: np.ndarray, ids: np.ndarray, normals: np.ndarray, dn1: np.
 _MAX_CURVATURE_STEPS = 2.0  # |kappa| <= 2 / grid step: radii of half a step and more
 
 
-def size_sources(microstructure) -> SizeSources:
+def size_sources(microstructure, curvature_average: float | None = None) -> SizeSources:
     """Sources, their DN2 (or own gap, `self_gaps`), box gaps and curvature (each inclusion's own
-    phi_fn, capped at 2 / grid step) for a Microstructure."""
+    phi_fn, capped at 2 / grid step) for a Microstructure.
+
+    curvature_average: grid steps over which each inclusion's mean and Gaussian curvatures are
+    averaged (see `_curvature`); 0: pointwise; None (default): averaged over 1.5 steps on the
+    inclusions whose interfaces ripple at the grid scale, pointwise elsewhere.
+    """
     ms = microstructure
+    if curvature_average is not None and (
+            not isinstance(curvature_average, (int, float)) or isinstance(curvature_average, bool)
+            or not 0.0 <= curvature_average <= 8.0):
+        raise ValueError(f"curvature_average: expected None or grid steps in [0, 8], got {curvature_average!r}; "
+                         "hint: 1.5 for a field sampled from voxels, 0 pointwise, None to decide per inclusion")
     points, ids = interface_sources(ms)
     # DN2 may be inf (a single inclusion): clamp to a length no periodic distance exceeds
     dn2_grid = np.clip(np.asarray(ms.dn2, dtype=float), 0.0, float(np.linalg.norm(ms.box)))
-    kappa, pts = np.zeros(ids.size), np.asarray(points)
+    kappa, pts, averaged = np.zeros(ids.size), np.asarray(points), []
+    step = min(b / n for b, n in zip(ms.box, ms.grid_shape))
     for inc in ms.inclusions:
         sel = np.nonzero(ids == inc.id)[0]
         if sel.size:
-            kappa[sel] = _curvature(inc.phi_fn, pts[sel])
-    step = min(b / n for b, n in zip(ms.box, ms.grid_shape))
+            kappa[sel], was_averaged = _curvature(inc.phi_fn, pts[sel], curvature_average, step, ms.box,
+                                                  ms.periodic)
+            if was_averaged:
+                averaged.append(inc.id)
     # radii of curvature below half a grid step are kinks of the sampled field (a thresholded or
     # first-order distance), not resolved geometry: without a cap they set h down to its floor
     kappa = np.minimum(kappa, _MAX_CURVATURE_STEPS / step)
@@ -639,11 +721,11 @@ def size_sources(microstructure) -> SizeSources:
     # finer sizes would be lost in the grid interpolation of h (and the grid resolves no thinner layer);
     # finite, so that jax.grad through box_gap / nb_el stays finite where the term is not the minimum
     box_gap = np.clip(box_gap, step / 6.0, float(np.linalg.norm(ms.box)))
-    return SizeSources(points, ids, dn2, jnp.asarray(kappa), box_gap)
+    return SizeSources(points, ids, dn2, jnp.asarray(kappa), box_gap, tuple(averaged))
 
 
 def size_function(microstructure, params: SizeParams | None = None, *,
-                  sources: SizeSources | None = None) -> SizeField:
+                  sources: SizeSources | None = None, curvature_average: float | None = None) -> SizeField:
     """The size function h(x) of a microstructure on its level-set grid (paper section 4.2).
 
     Args:
@@ -651,6 +733,9 @@ def size_function(microstructure, params: SizeParams | None = None, *,
             inclusions with phi_fn).
         params: :class:`SizeParams` (JAX scalars inside are differentiated through).
         sources: optional precomputed :func:`size_sources` (it does not depend on params).
+        curvature_average: grid steps over which :func:`size_sources` averages the curvature (0:
+            pointwise; None: 1.5 on the inclusions whose interfaces ripple at the grid scale, as the
+            interpolant of a field sampled from voxels does).
 
     Returns:
         :class:`SizeField` on microstructure.grid_shape.
@@ -661,9 +746,9 @@ def size_function(microstructure, params: SizeParams | None = None, *,
     """
     params = SizeParams() if params is None else params
     check_params_against_box(params, microstructure.box)
-    src = size_sources(microstructure) if sources is None else sources
+    src = size_sources(microstructure, curvature_average) if sources is None else sources
     iis, nb_el, alpha, g, h_max, h_min = params.resolved()
     h0 = source_sizes(src.points, src.ids, src.dn2, src.kappa, iis, nb_el, alpha, h_min, src.box_gap)
     h = limit_gradient(h0, src.points, microstructure.box, microstructure.grid_shape, g, h_max,
                        periodic=microstructure.periodic)
-    return SizeField(h, microstructure.box, src.points, h0)
+    return SizeField(h, microstructure.box, src.points, h0, src.curvature_averaged)
