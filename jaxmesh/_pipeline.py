@@ -56,8 +56,9 @@ class MeshConfig:
             of an image, a quantised field) has an interpolant that ripples at the grid scale, and
             pointwise every ripple asks for elements a quarter of a grid step; 1.5 steps cancel
             the ripples and keep a curvature the grid resolves (a sphere's exactly). None
-            (default): 1.5 on the inclusions where that takes the median curvature below a quarter
-            of the pointwise one (ripples), pointwise elsewhere; the size line says which.
+            (default): 1.5 on the inclusions whose interfaces ripple (half of the interface with
+            radii under two grid steps, most of that cancelled by the average), pointwise elsewhere;
+            the size line says which.
         grad: gradient limit of the size function.
         h_max: largest element size (None: 4 * iis).
         h: a uniform element size instead of the size function (None: use the size function).
@@ -119,11 +120,10 @@ class MeshConfig:
                     f"MeshConfig.{name}: expected a positive finite number, got {value!r}; hint: {_FIELD_HINTS[name]}"
                 )
         checked_seed(self.seed, "MeshConfig.seed")
-        if self.curv_average is not None and (
-                not isinstance(self.curv_average, (int, float)) or isinstance(self.curv_average, bool)
-                or not 0.0 <= self.curv_average <= 8.0):
-            raise ValueError(f"MeshConfig.curv_average: expected None or grid steps in [0, 8], got "
-                             f"{self.curv_average!r}; hint: 0 pointwise, 1.5 for a field sampled from voxels")
+        if self.curv_average is not None:
+            from ._sizing import check_curvature_average
+
+            check_curvature_average(self.curv_average, "MeshConfig.curv_average")
         if self.backend not in ("conforming", "tetwild"):
             raise ValueError(f"MeshConfig.backend: expected 'conforming' or 'tetwild', got {self.backend!r}")
         if self.interior not in ("bcc", "octree"):
@@ -402,8 +402,10 @@ def _averaged_note(ids: tuple[int, ...], total: int) -> str:
         return ""
     which = "the inclusion's interface ripples" if total == 1 else (
         f"{len(ids)} of {total} inclusions' interfaces ripple" if len(ids) > 1 else f"inclusion {ids[0]}'s interface ripples")
-    return (f"; curvature averaged over 1.5 grid steps: {which} at the grid scale (a field sampled from voxels, "
-            "e.g. a distance transform of an image; --curv-average 0 sizes the ripples)")
+    from ._sizing import AUTO_CURVATURE_AVERAGE
+
+    return (f"; curvature averaged over {AUTO_CURVATURE_AVERAGE:g} grid steps: {which} at the grid scale (a field "
+            "sampled from voxels, e.g. a distance transform of an image; --curv-average 0 sizes the ripples)")
 
 
 def _refuse_flat_cells(mesh, stage: str) -> None:
@@ -486,7 +488,8 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
         predicted = cellwise_element_count(values, ms.box)
         t = stage("size", t, f"h in [{values.min():.4f}, {values.max():.4f}], "
                              f"~{_TETS_PER_PREDICTED * predicted:.3g} tetrahedra expected"
-                             + _averaged_note(field.curvature_averaged, len(ms.inclusions)))
+                             + (_averaged_note(field.curvature_averaged, len(ms.inclusions))
+                                if config.curv_average is None else ""))
         _check_element_budget(config, predicted, float(values.min()))
 
     surface = mesh_surfaces(ms, h_jax)

@@ -684,6 +684,12 @@ def self_gaps(points: np.ndarray, ids: np.ndarray, normals: np.ndarray, dn1: np.
 _MAX_CURVATURE_STEPS = 2.0  # |kappa| <= 2 / grid step: radii of half a step and more
 
 
+def check_curvature_average(value, name: str = "curvature_average") -> None:
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0.0 <= value <= 8.0:
+        raise ValueError(f"{name}: expected None or grid steps in [0, 8], got {value!r}; hint: 0 pointwise, "
+                         f"{AUTO_CURVATURE_AVERAGE:g} for a field sampled from voxels, None to decide per inclusion")
+
+
 def size_sources(microstructure, curvature_average: float | None = None) -> SizeSources:
     """Sources, their DN2 (or own gap, `self_gaps`), box gaps and curvature (each inclusion's own
     phi_fn, capped at 2 / grid step) for a Microstructure.
@@ -693,11 +699,8 @@ def size_sources(microstructure, curvature_average: float | None = None) -> Size
     inclusions whose interfaces ripple at the grid scale, pointwise elsewhere.
     """
     ms = microstructure
-    if curvature_average is not None and (
-            not isinstance(curvature_average, (int, float)) or isinstance(curvature_average, bool)
-            or not 0.0 <= curvature_average <= 8.0):
-        raise ValueError(f"curvature_average: expected None or grid steps in [0, 8], got {curvature_average!r}; "
-                         "hint: 1.5 for a field sampled from voxels, 0 pointwise, None to decide per inclusion")
+    if curvature_average is not None:
+        check_curvature_average(curvature_average)
     points, ids = interface_sources(ms)
     # DN2 may be inf (a single inclusion): clamp to a length no periodic distance exceeds
     dn2_grid = np.clip(np.asarray(ms.dn2, dtype=float), 0.0, float(np.linalg.norm(ms.box)))
