@@ -37,7 +37,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 from scipy import ndimage
 
-from ._periodic import minimum_image, wrap
+from ._periodic import minimum_image, points_near, wrap
 from .geometry._differential import curvatures
 from .geometry._microstructure import _traceable
 from .geometry._grid import interpolate_linear
@@ -539,17 +539,10 @@ def _max_abs_from(mean: np.ndarray, gaussian: np.ndarray, dim: int) -> np.ndarra
 
 def _averaged_over_neighbours(points: np.ndarray, values: tuple[np.ndarray, ...], radius: float, box,
                               periodic: bool) -> tuple[np.ndarray, ...]:
-    """Each value averaged over the points within radius (periodic distances when periodic)."""
-    from scipy.spatial import cKDTree
-
-    box = np.asarray(box, float)
-    if periodic:
-        points = points - box * np.floor(points / box)
-        points = np.where(points >= box, 0.0, points)  # floor rounding can leave x == L
-    tree = cKDTree(points, boxsize=box if periodic else None)
-    pairs = tree.query_pairs(radius, output_type="ndarray")
-    rows = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(len(points))])
-    cols = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(len(points))])
+    """Each value averaged over the points within radius (`points_near`: minimum image when periodic)."""
+    near = points_near(points, points, np.full(len(points), radius), box, periodic)
+    rows = np.repeat(np.arange(len(points)), [len(n) for n in near])  # each point is its own neighbour
+    cols = np.concatenate(near)
     count = np.bincount(rows, minlength=len(points))
     return tuple(np.bincount(rows, weights=v[cols], minlength=len(points)) / count for v in values)
 
@@ -576,14 +569,13 @@ def _curvature(phi_fn: Callable, points: np.ndarray, average: float | None, step
     (see _RIPPLE_RATIO), else pointwise.
     """
     mean, gaussian, pointwise = _curvature_terms(phi_fn, points)
-    if average == 0.0:
+    typical = np.median(pointwise)
+    if average == 0.0 or (average is None and typical * step <= _RIPPLE_CURVATURE_STEPS):
         return pointwise, False
     radius = (AUTO_CURVATURE_AVERAGE if average is None else average) * step
     averaged = _max_abs_from(*_averaged_over_neighbours(points, (mean, gaussian), radius, box, periodic),
                              points.shape[1])
-    typical = np.median(pointwise)
-    if average is None and not (typical * step > _RIPPLE_CURVATURE_STEPS
-                                and np.median(averaged) < _RIPPLE_RATIO * typical):
+    if average is None and not np.median(averaged) < _RIPPLE_RATIO * typical:
         return pointwise, False
     return averaged, True
 
