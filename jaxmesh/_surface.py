@@ -266,7 +266,8 @@ def extract(phi_fn, lower, upper, step: float, box, periodic: bool = True, reach
 
     Periodic: the window stays within half a box of the inclusion centre: beyond it the periodic
     level set shows the next periodic image, which would leave an open piece of surface on the
-    window edge. Not periodic: the window is the bounds plus 2.5 * max(step, reach) (no images).
+    window edge. Not periodic: the window is the bounds plus 2.5 * max(step, reach) (no images),
+    widened where the inside still reaches a face of it.
     Per axis, the sample spacing is at most `step` and at most the margin around the bounds.
 
     Returns:
@@ -282,12 +283,23 @@ def extract(phi_fn, lower, upper, step: float, box, periodic: bool = True, reach
         raise MeshingError("surfaces", f"the inclusion spans {np.max(2 * half / L):.0%} of the box along an axis; "
                            "an inclusion must fit in half the box around its centre (with a margin)")
     width = half + margin
-    n = np.ceil(2 * width / np.minimum(step, margin)).astype(int) + 1
-    spacing = 2 * width / (n - 1)
-    lo = centre - width
-    axes = [lo[a] + spacing[a] * np.arange(n[a]) for a in range(3)]
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    vals = evaluate(phi_fn, grid).reshape(n)
+    lo, size = centre - width, 2 * width
+    for _ in range(_WINDOW_GROWTH):
+        n = np.ceil(size / np.minimum(step, margin)).astype(int) + 1
+        spacing = size / (n - 1)
+        axes = [lo[a] + spacing[a] * np.arange(n[a]) for a in range(3)]
+        grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        vals = evaluate(phi_fn, grid).reshape(n)
+        # not periodic: the inside can overhang its bounds beyond the box (a piece the box cuts to a
+        # sliver along an edge widens in its continuation up to the cap): a window face it reaches
+        # would leave the surface open there, so that face moves out
+        if periodic:
+            break
+        low_open = np.array([(vals.take(0, axis=a) < 0).any() for a in range(3)])
+        high_open = np.array([(vals.take(-1, axis=a) < 0).any() for a in range(3)])
+        if not (low_open | high_open).any():
+            break
+        lo, size = lo - margin * low_open, size + margin * (low_open.astype(float) + high_open)
     vals = np.where(vals == 0.0, 1e-12 * step, vals)  # no vertex exactly on a grid node
     verts, faces, _, _ = marching_cubes(vals, 0.0, spacing=tuple(spacing), allow_degenerate=False)
     pts = verts.astype(np.float64) + lo
@@ -573,6 +585,7 @@ def inside_pieces(points, tris, on_plane, box):
 
 
 _MC_ATTEMPTS = 3  # marching-cubes grids tried per inclusion, each up to 4x finer
+_WINDOW_GROWTH = 4  # marching-cubes windows per grid, each a margin wider where the inside reaches its face
 _MIN_CAP_DEPTH = 0.01  # fraction of h: shallower caps beyond a box plane are not meshed
 
 

@@ -218,6 +218,24 @@ def test_rotated_ellipsoid_at_smallest_axis_over_6(axes):
     assert cell_quality(p, t).mean() >= 0.85 and min_angles(p, t).min() >= 20.0
 
 
+def test_a_piece_the_box_cuts_to_a_sliver_along_an_edge_gets_a_closed_marching_cubes_surface():
+    """A sphere centred beyond the box edge y = z = 0 reaches 0.15 grid steps into a plain box: there
+    its piece is a row of three samples along the edge, and beyond the box the field's continuation
+    widens along x, past the window its bounds give (at bb47511: "the marching-cubes surface is not
+    closed", as for a generated excursion set read as a plain box)."""
+    n = 32
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), -1)
+    phi = np.linalg.norm(X - np.array([0.5, -0.1, -0.1]), axis=-1) - (np.hypot(0.1, 0.1) + 0.15 / n)
+    ms = Microstructure.from_levelset(np.minimum(phi, np.linalg.norm(X - 0.55, axis=-1) - 0.2), periodic=False)
+    sliver = ms.inclusions[1]
+    assert (np.asarray(sliver.upper) - sliver.lower)[1:].max() < 0.25 / n
+    out = mesh_inclusion(sliver, as_size_fn(0.005, ms.box, False), ms.box, periodic=False)
+    p = out["points"]
+    assert len(out["triangles"]) and p.min() >= 0.0 and p[:, 1:].max() < 0.25 / n
+    assert np.abs(ms.inclusion_phi(2, p[(p[:, 1] > 0) & (p[:, 2] > 0)])).max() < 1e-6 * 0.005
+
+
 def test_two_spheres_one_grid_step_apart():
     r, step = 0.15, 1.0 / 32
     c = [np.array([0.3, 0.5, 0.5]), np.array([0.3 + 2 * r + step, 0.5, 0.5])]
