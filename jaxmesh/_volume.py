@@ -323,7 +323,7 @@ def _missing_place(surface: SurfaceMesh, miss: np.ndarray) -> str:
         return (f"{place}, {to_plane[second]:.2g} from a box edge (seen where an interface passes a small fraction "
                 "of a grid step from a box edge: a layer thinner than the input resolves; hint: move the "
                 "inclusion off the edge or across it, sample the field finer, or raise max_recovery_rounds)")
-    if to_plane[first] <= size:
+    if layer or to_plane[first] <= size:  # a layer along the plane: its triangles may be far smaller than it is thick
         remedy = ("--roll auto moves the box planes off the inclusions' extremes" if surface.periodic else
                   "a periodic field meshed periodic (with --roll auto) avoids the plane")
         return (f"{place}, {to_plane[first]:.2g} from the box plane {plane}: the interface there is nearly tangent "

@@ -637,6 +637,20 @@ def test_a_failed_recovery_names_the_layer_between_the_interface_and_the_plane(f
     assert "a periodic field meshed periodic" in message
 
 
+def test_a_layer_thicker_than_its_missing_triangles_is_still_named_with_the_plane():
+    """Seed 133's excursion set as a plain box: missing triangles 0.0002 across, 0.0007 from y = L, a matrix
+    layer. Its cause is the plane the interface runs along, not interfaces close to each other."""
+    from jaxmesh._volume import _missing_place
+
+    patch = _patch_of_triangles(np.array([0.19, 0.9993, 0.09]), size=0.0002, normal_axis=1)  # normal +y
+    surface = SurfaceMesh(patch.points, patch.triangles[:, ::-1], patch.sides, patch.kind, patch.node_inclusion,
+                          patch.box, {}, {}, False)  # normal -y: the matrix lies between it and y = L
+    message = _missing_place(surface, np.ones(surface.n_triangles, bool))
+    assert "(a layer of matrix about 0.0007 thick along the box plane x_1 = L)" in message
+    assert "from the box plane x_1 = L: the interface there is nearly tangent" in message
+    assert "interfaces closer to each other" not in message
+
+
 def test_a_failed_periodic_recovery_says_the_layer_goes_on_across_the_plane():
     from jaxmesh._volume import _missing_place
 
