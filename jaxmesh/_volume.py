@@ -299,7 +299,8 @@ def _missing_place(surface: SurfaceMesh, miss: np.ndarray) -> str:
     Beside a box edge (the second-nearest box plane within ten triangle sizes), or against one box
     plane (the interface nearly tangent to it: the nodes that splits add there come ever closer to the
     plane, a plain-box excursion set at 0.45), or between interfaces. Where the missing interface
-    triangles there run along the nearest plane, the region between them and it is named as well.
+    triangles there run along the nearest plane, the region between them and it is named as well, and
+    the plane is the cause however thick that layer is against the triangles.
     """
     if not miss.any():
         return ""
