@@ -284,7 +284,7 @@ def extract(phi_fn, lower, upper, step: float, box, periodic: bool = True, reach
                            "an inclusion must fit in half the box around its centre (with a margin)")
     width = half + margin
     lo, size = centre - width, 2 * width
-    for _ in range(_WINDOW_GROWTH):
+    for attempt in range(_WINDOW_GROWTH):
         n = np.ceil(size / np.minimum(step, margin)).astype(int) + 1
         spacing = size / (n - 1)
         axes = [lo[a] + spacing[a] * np.arange(n[a]) for a in range(3)]
@@ -293,7 +293,7 @@ def extract(phi_fn, lower, upper, step: float, box, periodic: bool = True, reach
         # not periodic: the inside can overhang its bounds beyond the box (a piece the box cuts to a
         # sliver along an edge widens in its continuation up to the cap): a window face it reaches
         # would leave the surface open there, so that face moves out
-        if periodic:
+        if periodic or attempt == _WINDOW_GROWTH - 1:  # the last window is the one sampled
             break
         low_open = np.array([(vals.take(0, axis=a) < 0).any() for a in range(3)])
         high_open = np.array([(vals.take(-1, axis=a) < 0).any() for a in range(3)])
