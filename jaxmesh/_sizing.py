@@ -627,9 +627,17 @@ def box_gaps(points: np.ndarray, normals: np.ndarray, box, max_angle: float = 15
     a corner without crossing it. The box faces are meshed as constraints, so the layer needs
     elements about that thin (paper section 6 sees flat elements there); the generator's box_gap
     keeps its own inclusions clear of such layers.
+    A point on a box plane (a trace) faces by its normal within that plane: its trace running along
+    a box edge bounds a strip of the face as thin as the distance to that edge (the sliver of an
+    inclusion the box cuts along an edge: its normal, halfway between the two planes, faces neither).
     """
     pts = np.asarray(points, dtype=float)
-    to_plane = minimum_image(pts, np.asarray(box, dtype=float))  # offset from the nearest box plane per axis
+    box = np.asarray(box, dtype=float)
+    to_plane = minimum_image(pts, box)  # offset from the nearest box plane per axis
+    normals = np.asarray(normals, dtype=float)
+    in_plane = np.where(np.abs(to_plane) <= 1e-9 * box, 0.0, normals)
+    norm = np.linalg.norm(in_plane, axis=1, keepdims=True)
+    normals = np.where(norm > 1e-3, in_plane / np.maximum(norm, 1e-300), normals)
     cos_min = math.cos(math.radians(max_angle))
     gap = np.full(len(pts), np.inf)
     for k in range(1, pts.shape[1] + 1):

@@ -298,6 +298,25 @@ def test_a_trace_beside_a_box_edge_meshes_valid():
         assert quality_report(mesh)["min_dihedral_deg"] >= 5.0
 
 
+@pytest.mark.parametrize("depth", [0.15, 0.3])
+def test_a_sliver_the_box_cuts_along_an_edge_meshes_valid(depth):
+    """A sphere centred beyond the edge y = z = 0 reaches `depth` grid steps into a plain 32^3 box: a
+    rod along the edge, about a third of a step across. Its traces run along the edge, so the size
+    function is refined to their distance from it; before (the sliver sized like the box around it,
+    its surface four times finer than h), the volume recovery diverged."""
+    n = 32
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), -1)
+    sliver = np.linalg.norm(X - np.array([0.5, -0.1, -0.1]), axis=-1) - (np.hypot(0.1, 0.1) + depth / n)
+    ms = Microstructure.from_levelset(np.minimum(sliver, np.linalg.norm(X - 0.55, axis=-1) - 0.2), periodic=False)
+    rod = ms.inclusions[1]
+    assert (np.asarray(rod.upper) - rod.lower)[1:].max() < 0.5 / n
+    mesh = mesh_rve(ms, MeshConfig(periodic=False))
+    vol = _check_plain_box(mesh, ms)
+    assert vol[mesh.inclusion_id == 2].sum() > 0
+    assert quality_report(mesh)["min_dihedral_deg"] >= 5.0
+
+
 def test_labels_the_box_splits_mesh_one_inclusion_per_part():
     """A periodic label image read as a plain box: the box cuts label 1 into two parts (x near 0 and
     x near 1) and label 2 into four (an edge); each part is meshed as its own inclusion."""

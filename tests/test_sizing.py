@@ -403,6 +403,18 @@ def test_box_gaps_facing_only():
     assert box_gaps(points[:1], tilted, box, max_angle=30.0)[0] == pytest.approx(0.004)
 
 
+def test_box_gaps_a_trace_faces_by_its_normal_within_its_plane():
+    """A sliver the box cuts along the edge y = z = 0: its trace on z = 0 runs 0.004 from the edge
+    and its normal points halfway between the planes. Within z = 0 it faces the edge; off the plane
+    the same normal faces nothing near."""
+    diag = np.array([[0.0, 1.0, 1.0]]) / np.sqrt(2.0)
+    on_plane = box_gaps(np.array([[0.5, 0.004, 0.0]]), diag, (1.0, 1.0, 1.0))
+    assert on_plane[0] == pytest.approx(0.004)
+    assert box_gaps(np.array([[0.5, 0.004, 0.02]]), diag, (1.0, 1.0, 1.0))[0] > 0.2
+    # a normal (almost) across its plane has no direction within it: the 3D test decides
+    assert box_gaps(np.array([[0.5, 0.3, 0.0]]), np.array([[0.0, 0.0, 1.0]]), (1.0, 1.0, 1.0))[0] > 0.2
+
+
 def test_size_refined_where_a_trace_passes_near_a_box_edge():
     # the sphere crosses x = 0 deeply, and its trace there passes 0.003 above the edge x = z = 0
     centre, radius = np.array([0.03, 0.5, 0.09]), 0.09
