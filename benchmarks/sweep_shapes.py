@@ -1,7 +1,8 @@
 """Robustness sweep (not a test): varied shapes meshed with the CLI defaults.
 
 Builds each input in OUT_DIR (tori, rounded cubes, finite cylinders, a labelled image, a
-non-cubic box, a sphere near its images, spheres on a box corner / edge, Gaussian excursion
+non-cubic box, a sphere near its images, spheres on a box corner / edge, spheres centred beyond
+an edge, a corner or a face that reach a fraction of a grid step into the box, Gaussian excursion
 sets from `jaxmesh generate --kind grf`, percolating inclusions: endless fibres, a gyroid
 network, percolating excursion sets; and fields written as users write them: random spheres
 placed with no box clearance, algebraic ellipsoid fields and thresholded random fields that are not
@@ -269,6 +270,18 @@ def case_trace_by_edge(out: Path, n=64):
     return p, [], "r 0.2, its trace on x = 0 0.38 steps from the edge x = z = 0"
 
 
+def _beyond_the_box(name: str, centre, r: float, depth: float, note: str, n: int = 32):
+    """A sphere centred outside the box that reaches `depth` grid steps into it (plain boxes: a sliver
+    along an edge, a corner piece or a shallow cap; periodic: the wrapped side of a sphere that
+    crosses the far planes), beside a sphere r 0.2 in the middle."""
+    def case(out: Path):
+        x = _grid(n)
+        sliver = sd_sphere(_local(x, centre), r + depth / n)
+        np.save(p := out / f"{name}.npy", np.minimum(sliver, sd_sphere(_local(x, (0.55, 0.55, 0.55)), 0.2)))
+        return p, [], f"{note}, {depth:g} grid steps into the box, {n}^3"
+    return case
+
+
 # --- percolating inclusions: each reaches its own periodic image ----------------------------------
 
 def _periodic_min(dist, x, box=(1.0, 1.0, 1.0)) -> np.ndarray:
@@ -362,6 +375,13 @@ CASES = {
     "sphere_corner": case_sphere_corner,
     "sphere_edge": case_sphere_edge,
     "trace_by_edge": case_trace_by_edge,
+    "sliver_edge": _beyond_the_box("sliver_edge", (0.5, -0.1, -0.1), float(np.hypot(0.1, 0.1)), 0.3,
+                                   "sphere centred beyond the edge y = z = 0"),
+    "sliver_edge_015": _beyond_the_box("sliver_edge_015", (0.5, -0.1, -0.1), float(np.hypot(0.1, 0.1)), 0.15,
+                                       "sphere centred beyond the edge y = z = 0"),
+    "sliver_corner": _beyond_the_box("sliver_corner", (-0.08, -0.08, -0.08), float(np.sqrt(3.0) * 0.08), 0.3,
+                                     "sphere centred beyond the corner 0"),
+    "cap_shallow": _beyond_the_box("cap_shallow", (0.5, 0.5, -0.1), 0.1, 0.3, "sphere centred beyond the face z = 0"),
     "grf_s1": _excursion(1),
     "grf_s2": _excursion(2),
     "fibre": _straight_fibre("fibre", (0.5, 0.5, 0.0), (0, 0, 1), 0.2, 32, "endless straight fibre along z, r 0.2"),
