@@ -618,7 +618,7 @@ def _grid_normals(dn1: np.ndarray, box, points, periodic: bool = True) -> np.nda
     return g / np.maximum(np.linalg.norm(g, axis=-1, keepdims=True), 1e-300)
 
 
-def box_gaps(points: np.ndarray, normals: np.ndarray, box, max_angle: float = 15.0) -> np.ndarray:
+def box_gaps(points: np.ndarray, normals: np.ndarray, box, max_angle: float = 20.0) -> np.ndarray:
     """Per surface point: the distance to the nearest box face, edge or corner that the surface
     faces (its normal within max_angle degrees of the direction to it), inf where there is none.
 

@@ -317,6 +317,22 @@ def test_a_sliver_the_box_cuts_along_an_edge_meshes_valid(depth):
     assert quality_report(mesh)["min_dihedral_deg"] >= 5.0
 
 
+def test_a_shallow_cap_the_box_cuts_off_meshes_valid():
+    """A sphere centred beyond z = 0 reaches 0.3 grid steps into a plain 32^3 box: the interpolant makes
+    the cap a lens 0.009 deep and 0.1 wide, its rim a wedge of 10-22 degrees, its normals 16 degrees
+    off the plane's. Sized like the box (box gaps within 15 degrees only), the volume recovery diverged
+    at the rim; within 20 degrees the lens gets elements as thin as it."""
+    n = 32
+    x = np.arange(n) / n
+    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), -1)
+    cap = np.linalg.norm(X - np.array([0.5, 0.5, -0.1]), axis=-1) - (0.1 + 0.3 / n)
+    ms = Microstructure.from_levelset(np.minimum(cap, np.linalg.norm(X - 0.55, axis=-1) - 0.2), periodic=False)
+    mesh = mesh_rve(ms, MeshConfig(periodic=False))
+    vol = _check_plain_box(mesh, ms)
+    assert vol[mesh.inclusion_id == 2].sum() > 0
+    assert quality_report(mesh)["min_dihedral_deg"] >= 5.0
+
+
 def test_labels_the_box_splits_mesh_one_inclusion_per_part():
     """A periodic label image read as a plain box: the box cuts label 1 into two parts (x near 0 and
     x near 1) and label 2 into four (an edge); each part is meshed as its own inclusion."""

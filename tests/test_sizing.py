@@ -397,8 +397,8 @@ def test_box_gaps_facing_only():
     np.testing.assert_allclose(gap[:2], 0.004)
     assert gap[2] > 0.2 and gap[4] > 0.2  # only the distant planes x = 0, z = 0 ahead of them
     np.testing.assert_allclose(gap[3], 0.002 * np.sqrt(2.0))
-    # 20 degrees off the direction to the plane: beyond the default 15
-    tilted = np.array([[np.sin(np.radians(20.0)), 0.0, -np.cos(np.radians(20.0))]])
+    # 25 degrees off the direction to the plane: beyond the default 20
+    tilted = np.array([[np.sin(np.radians(25.0)), 0.0, -np.cos(np.radians(25.0))]])
     assert box_gaps(points[:1], tilted, box)[0] > 0.2
     assert box_gaps(points[:1], tilted, box, max_angle=30.0)[0] == pytest.approx(0.004)
 
