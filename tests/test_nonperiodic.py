@@ -298,39 +298,37 @@ def test_a_trace_beside_a_box_edge_meshes_valid():
         assert quality_report(mesh)["min_dihedral_deg"] >= 5.0
 
 
-@pytest.mark.parametrize("depth", [0.15, 0.3])
-def test_a_sliver_the_box_cuts_along_an_edge_meshes_valid(depth):
-    """A sphere centred beyond the edge y = z = 0 reaches `depth` grid steps into a plain 32^3 box: a
-    rod along the edge, about a third of a step across. Its traces run along the edge, so the size
-    function is refined to their distance from it; before (the sliver sized like the box around it,
-    its surface four times finer than h), the volume recovery diverged."""
-    n = 32
+def _mesh_a_sphere_beyond_the_box(centre, radius: float, depth: float, n: int = 32):
+    """Plain n^3 box: a sphere centred outside it reaching `depth` grid steps in, and one r 0.2 inside.
+    The piece in the box (inclusion 2) must mesh valid with some volume and min dihedral >= 5 deg."""
     x = np.arange(n) / n
     X = np.stack(np.meshgrid(x, x, x, indexing="ij"), -1)
-    sliver = np.linalg.norm(X - np.array([0.5, -0.1, -0.1]), axis=-1) - (np.hypot(0.1, 0.1) + depth / n)
-    ms = Microstructure.from_levelset(np.minimum(sliver, np.linalg.norm(X - 0.55, axis=-1) - 0.2), periodic=False)
-    rod = ms.inclusions[1]
-    assert (np.asarray(rod.upper) - rod.lower)[1:].max() < 0.5 / n
+    piece = np.linalg.norm(X - np.asarray(centre), axis=-1) - (radius + depth / n)
+    ms = Microstructure.from_levelset(np.minimum(piece, np.linalg.norm(X - 0.55, axis=-1) - 0.2), periodic=False)
     mesh = mesh_rve(ms, MeshConfig(periodic=False))
     vol = _check_plain_box(mesh, ms)
     assert vol[mesh.inclusion_id == 2].sum() > 0
     assert quality_report(mesh)["min_dihedral_deg"] >= 5.0
+    return ms
+
+
+@pytest.mark.parametrize("depth", [0.15, 0.3])
+def test_a_sliver_the_box_cuts_along_an_edge_meshes_valid(depth):
+    """A sphere centred beyond the edge y = z = 0 reaches `depth` grid steps into the box: a rod along
+    the edge, under half a step across. Its traces run along the edge, so the size function is refined
+    to their distance from it; before (the rod sized like the box around it, its surface several times
+    finer than h), the volume recovery diverged."""
+    ms = _mesh_a_sphere_beyond_the_box((0.5, -0.1, -0.1), float(np.hypot(0.1, 0.1)), depth)
+    rod = ms.inclusions[1]
+    assert (np.asarray(rod.upper) - rod.lower)[1:].max() < 0.5 / 32
 
 
 def test_a_shallow_cap_the_box_cuts_off_meshes_valid():
-    """A sphere centred beyond z = 0 reaches 0.3 grid steps into a plain 32^3 box: the interpolant makes
-    the cap a lens 0.009 deep and 0.1 wide, its rim a wedge of 10-22 degrees, its normals 16 degrees
-    off the plane's. Sized like the box (box gaps within 15 degrees only), the volume recovery diverged
-    at the rim; within 20 degrees the lens gets elements as thin as it."""
-    n = 32
-    x = np.arange(n) / n
-    X = np.stack(np.meshgrid(x, x, x, indexing="ij"), -1)
-    cap = np.linalg.norm(X - np.array([0.5, 0.5, -0.1]), axis=-1) - (0.1 + 0.3 / n)
-    ms = Microstructure.from_levelset(np.minimum(cap, np.linalg.norm(X - 0.55, axis=-1) - 0.2), periodic=False)
-    mesh = mesh_rve(ms, MeshConfig(periodic=False))
-    vol = _check_plain_box(mesh, ms)
-    assert vol[mesh.inclusion_id == 2].sum() > 0
-    assert quality_report(mesh)["min_dihedral_deg"] >= 5.0
+    """A sphere centred beyond z = 0 reaches 0.3 grid steps into the box: the interpolant makes the cap a
+    flat lens with a thin wedge at its rim, its normals just beyond 15 degrees of the plane's. Sized like
+    the box (box gaps within 15 degrees only), the volume recovery diverged at the rim; within 20 degrees
+    the lens gets elements as thin as it."""
+    _mesh_a_sphere_beyond_the_box((0.5, 0.5, -0.1), 0.1, 0.3)
 
 
 def test_labels_the_box_splits_mesh_one_inclusion_per_part():

@@ -411,8 +411,10 @@ def test_box_gaps_a_trace_faces_by_its_normal_within_its_plane():
     on_plane = box_gaps(np.array([[0.5, 0.004, 0.0]]), diag, (1.0, 1.0, 1.0))
     assert on_plane[0] == pytest.approx(0.004)
     assert box_gaps(np.array([[0.5, 0.004, 0.02]]), diag, (1.0, 1.0, 1.0))[0] > 0.2
-    # a normal (almost) across its plane has no direction within it: the 3D test decides
-    assert box_gaps(np.array([[0.5, 0.3, 0.0]]), np.array([[0.0, 0.0, 1.0]]), (1.0, 1.0, 1.0))[0] > 0.2
+    # a normal almost across its plane has no direction within it (renormalised, 1e-4 of y would face
+    # y = 0): the 3D test decides, and faces nothing near
+    across = np.array([[0.0, 1e-4, 1.0]]) / np.hypot(1e-4, 1.0)
+    assert box_gaps(np.array([[0.5, 0.004, 0.0]]), across, (1.0, 1.0, 1.0))[0] > 0.2
 
 
 def test_size_refined_where_a_trace_passes_near_a_box_edge():
