@@ -681,6 +681,25 @@ def test_slope_spread_tells_distances_from_other_fields():
     assert spread(generated) < _DISTANCE_SPREAD
 
 
+def test_a_plain_box_field_is_not_rescaled_by_its_jump_across_the_wrap():
+    """A sphere's distance sampled without wrapping and cut by the far planes x = z = L: the field is a
+    distance (scale 1) on a plain box. The slopes once came from periodic differences, which took the
+    jump from phi[n-1] (beside the sphere) to phi[0] (far from it) for one: the field was divided by
+    about 20 and its inside flattened to nearly zero."""
+    n, R = 48, 0.1
+    x = np.stack(np.meshgrid(*[np.arange(n) / n] * 3, indexing="ij"), axis=-1)
+    centre = np.array([0.9286, 0.5, 0.9286])
+    ms = Microstructure.from_levelset(np.linalg.norm(x - centre, axis=-1) - R, periodic=False)
+    assert ms.inclusions[0].description["scale"] == 1.0
+    assert ms.inclusions[0].description["slope_spread"] < 1.1
+    directions = np.random.default_rng(3).normal(size=(40, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    for depth in (0.0, 0.05):  # on the sphere and half its radius in, where it lies inside the box
+        pts = centre + (R - depth) * directions
+        pts = pts[np.all(pts < 1 - 1.0 / n, axis=1)]
+        np.testing.assert_allclose(ms.phi(pts), -depth, atol=2e-3)
+
+
 def test_rolled_rebuilds_a_grid_microstructure_in_the_shifted_frame():
     """rolled(k): the grid read so that sample k lies at x = 0, so the field at x equals the original's at
     x + k h (mod L), for level sets, labelled images and analytic inclusions (whose description's centre

@@ -786,16 +786,22 @@ def check_points(points, d: int, where: str) -> np.ndarray:
     return p
 
 
-def gradient_scale(values: np.ndarray, mask: np.ndarray, spacing) -> tuple[float, float]:
+def gradient_scale(values: np.ndarray, mask: np.ndarray, spacing, periodic: bool = True) -> tuple[float, float]:
     """Median |grad phi| (central differences) at the nodes next to the interface, 1 for a distance,
     and the ratio of its 90th to its 10th percentile there (the slope spread): about 1 for a sampled
     distance, below 1.5 for a first-order one (`first_order_distance`), above 2 for a thresholded
-    Gaussian random field (`tests/test_microstructure.py::test_slope_spread_tells_distances_from_other_fields`)."""
-    grad2 = sum(((np.roll(values, -1, k) - np.roll(values, 1, k)) / (2 * h)) ** 2
-                for k, h in enumerate(spacing))
+    Gaussian random field (`tests/test_microstructure.py::test_slope_spread_tells_distances_from_other_fields`).
+    Not periodic: one-sided differences on the border slices and no pair across the wrap (the far
+    sides of a field that is not periodic differ by anything: a jump there is no slope)."""
+    grad2 = sum(g_k**2 for g_k in _gradient(values, np.asarray(spacing, float), periodic))
     edge = np.zeros_like(mask)
     for k in range(values.ndim):
-        edge |= mask != np.roll(mask, 1, k)
+        if periodic:
+            edge |= mask != np.roll(mask, 1, k)
+        else:
+            lo, hi = [slice(None)] * values.ndim, [slice(None)] * values.ndim
+            lo[k], hi[k] = slice(None, -1), slice(1, None)
+            edge[tuple(hi)] |= mask[tuple(lo)] != mask[tuple(hi)]
     g = np.sqrt(grad2[edge])
     g = g[g > 0]
     if not g.size:

@@ -554,7 +554,7 @@ class Microstructure:
                     )
         if redistance:
             v = comp.first_order_distance(v, mask, spacing, periodic)
-        scale, spread = gradient_scale(v, mask, spacing)
+        scale, spread = gradient_scale(v, mask, spacing, periodic)
         scale = scale if abs(scale - 1.0) > 0.25 else 1.0  # distance-like fields are kept as they are
         v = v / scale
         labels, n = comp.label_components(mask, True) if periodic else comp.label_components_to_far_planes(v)
