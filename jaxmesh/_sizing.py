@@ -649,6 +649,42 @@ def box_gaps(points: np.ndarray, normals: np.ndarray, box, max_angle: float = 20
     return gap
 
 
+def edge_gap_sources(microstructure, reach_steps: float = 2.0, samples_per_step: int = 4
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Plain 3D boxes: points on the box edges where an inclusion's level set comes closest to the
+    edge without crossing it (a local minimum of its phi along the edge, positive and below
+    reach_steps grid steps), as (points (k, 3), inclusion ids (k,), gaps (k,) = phi there).
+
+    Such a layer of matrix beside an edge lies within the last grid cell, where no grid edge crosses
+    the interface (beyond the last sample x = L holds no node), so no interface source sees it; its
+    box-face triangles kept the box's h against a layer a fraction of a step thick and the volume
+    recovery diverged there.
+    """
+    ms = microstructure
+    if ms.periodic or ms.dim != 3:
+        return np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0)
+    box = np.asarray(ms.box, dtype=float)
+    step = min(ms.spacing)
+    points, ids, gaps = [], [], []
+    for axis in range(3):
+        across = [a for a in range(3) if a != axis]
+        t = np.linspace(0.0, box[axis], int(np.ceil(box[axis] / step * samples_per_step)) + 1)
+        for corner in itertools.product(*[(0.0, box[a]) for a in across]):
+            line = np.zeros((len(t), 3))
+            line[:, axis], line[:, across] = t, corner
+            for index, sel, vals in ms._evaluate_near(line, reach_steps * step):
+                v = np.full(len(t), np.inf)
+                v[sel] = vals
+                before, after = np.r_[np.inf, v[:-1]], np.r_[v[1:], np.inf]
+                low = (v > 0) & (v < reach_steps * step) & (v <= before) & (v <= after)
+                points.append(line[low])
+                ids.append(np.full(int(low.sum()), ms.inclusions[index].id))
+                gaps.append(v[low])
+    if not points:
+        return np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0)
+    return np.concatenate(points), np.concatenate(ids).astype(np.int64), np.concatenate(gaps)
+
+
 def self_gaps(points: np.ndarray, ids: np.ndarray, normals: np.ndarray, dn1: np.ndarray, nearest_id: np.ndarray,
               box, periodic: bool = True, max_steps: int = 16) -> np.ndarray:
     """Per surface point: the width of the matrix in front of it when the other side is the same
@@ -721,6 +757,13 @@ def size_sources(microstructure, curvature_average: float | None = None) -> Size
     own_gap = self_gaps(pts, ids, normals, dn1_grid, np.asarray(ms.nearest_id), ms.box, ms.periodic)
     dn2 = jnp.minimum(interpolate_linear(jnp.asarray(dn2_grid), ms.box, points), jnp.asarray(own_gap))
     box_gap = box_gaps(pts, normals, ms.box)
+    edge_points, edge_ids, edge_gaps = edge_gap_sources(ms)
+    if len(edge_points):  # layers beside a plain box's edges that no crossing sees: sources of their own
+        points = jnp.concatenate([jnp.asarray(points), jnp.asarray(edge_points, dtype=jnp.asarray(points).dtype)])
+        ids = np.concatenate([np.asarray(ids), edge_ids])
+        dn2 = jnp.concatenate([dn2, interpolate_linear(jnp.asarray(dn2_grid), ms.box, jnp.asarray(edge_points))])
+        kappa = np.concatenate([kappa, np.zeros(len(edge_points))])
+        box_gap = np.concatenate([box_gap, edge_gaps])
     # finer sizes would be lost in the grid interpolation of h (and the grid resolves no thinner layer);
     # finite, so that jax.grad through box_gap / nb_el stays finite where the term is not the minimum
     box_gap = np.clip(box_gap, step / 6.0, float(np.linalg.norm(ms.box)))
