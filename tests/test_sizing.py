@@ -454,3 +454,31 @@ def test_bad_inputs(two_spheres):
         interface_sources(np.full((8, 8), np.nan))
     with pytest.raises(ValueError, match="one per source"):
         source_sizes(np.zeros((4, 2)), np.ones(3), np.ones(4), np.ones(4), 0.1, 3.0, 0.5)
+
+
+def test_edge_gap_sources_find_where_an_inclusion_passes_close_to_a_plain_box_edge():
+    """A sphere 0.3 grid steps from the edge x = z = L of a plain box (its distance sampled without
+    wrapping): one source on that edge at y = 0.5 with the level set's value there as its gap, none on a
+    periodic field or from a sphere well clear of the edges; the size function (clamped at the last node, as
+    the mesher takes it on a plain box) there comes down to about that gap (it stayed at h_max: no interface
+    source lies in the last cell)."""
+    from jaxmesh._sizing import edge_gap_sources
+
+    n, R = 48, 0.1
+    x = np.stack(np.meshgrid(*[np.arange(n) / n] * 3, indexing="ij"), axis=-1)
+    a = (R + 0.3 / n) / np.sqrt(2)
+    centre = np.array([1 - a, 0.5, 1 - a])
+    ms = Microstructure.from_levelset(np.linalg.norm(x - centre, axis=-1) - R, periodic=False)
+    points, ids, gaps = edge_gap_sources(ms)
+    assert len(points) == 1 and ids.tolist() == [1]
+    np.testing.assert_allclose(points[0], [1.0, 0.5, 1.0])
+    assert 0 < gaps[0] < 0.5 / n and gaps[0] == pytest.approx(float(ms.phi(points)[0]))
+    from jaxmesh._surface import as_size_fn
+
+    h = float(as_size_fn(size_function(ms), ms.box, periodic=False)(jnp.asarray(points))[0])  # as the mesher sees it
+    assert h < 2 * gaps[0] + 0.5 / n
+    clear = Microstructure.from_levelset(np.linalg.norm(x - 0.5, axis=-1) - 0.2, periodic=False)
+    assert len(edge_gap_sources(clear)[0]) == 0
+    d = x - centre
+    wrapped = Microstructure.from_levelset(np.linalg.norm(d - np.round(d), axis=-1) - R)
+    assert len(edge_gap_sources(wrapped)[0]) == 0
