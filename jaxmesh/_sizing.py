@@ -653,12 +653,13 @@ def edge_gap_sources(microstructure, reach_steps: float = 2.0, samples_per_step:
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Plain 3D boxes: points on the box edges where an inclusion's level set comes closest to the
     edge without crossing it (a local minimum of its phi along the edge, positive and below
-    reach_steps grid steps), as (points (k, 3), inclusion ids (k,), gaps (k,) = phi there).
+    reach_steps grid steps) or crosses it by less than half a step (a minimum in (-step/2, 0)), as
+    (points (k, 3), inclusion ids (k,), gaps (k,) = |phi| there).
 
-    Such a layer of matrix beside an edge lies within the last grid cell, where no grid edge crosses
-    the interface (beyond the last sample x = L holds no node), so no interface source sees it; its
-    box-face triangles kept the box's h against a layer a fraction of a step thick and the volume
-    recovery diverged there.
+    Such a layer of matrix beside an edge, or sliver of inclusion across it, lies within the last grid
+    cell, where no grid edge crosses the interface (beyond the last sample x = L holds no node), so no
+    interface source sees it; its box-face triangles kept the box's h against a layer a fraction of a
+    step thick and the volume recovery diverged there.
     """
     ms = microstructure
     if ms.periodic or ms.dim != 3:
@@ -676,10 +677,11 @@ def edge_gap_sources(microstructure, reach_steps: float = 2.0, samples_per_step:
                 v = np.full(len(t), np.inf)
                 v[sel] = vals
                 before, after = np.r_[np.inf, v[:-1]], np.r_[v[1:], np.inf]
-                low = (v > 0) & (v < reach_steps * step) & (v <= before) & (v <= after)
+                thin = ((v > 0) & (v < reach_steps * step)) | ((v < 0) & (v > -0.5 * step))
+                low = thin & (v <= before) & (v <= after)
                 points.append(line[low])
                 ids.append(np.full(int(low.sum()), ms.inclusions[index].id))
-                gaps.append(v[low])
+                gaps.append(np.abs(v[low]))
     if not points:
         return np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0)
     return np.concatenate(points), np.concatenate(ids).astype(np.int64), np.concatenate(gaps)

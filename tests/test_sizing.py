@@ -458,7 +458,8 @@ def test_bad_inputs(two_spheres):
 
 def test_edge_gap_sources_find_where_an_inclusion_passes_close_to_a_plain_box_edge():
     """A sphere 0.3 grid steps from the edge x = z = L of a plain box (its distance sampled without
-    wrapping): one source on that edge at y = 0.5 with the level set's value there as its gap, none on a
+    wrapping): one source on that edge at y = 0.5 with the level set's value there as its gap (at 0.15
+    steps the continued field crosses the edge: |phi| there), none on a
     periodic field or from a sphere well clear of the edges; the size function (clamped at the last node, as
     the mesher takes it on a plain box) there comes down to about that gap (it stayed at h_max: no interface
     source lies in the last cell)."""
@@ -477,6 +478,11 @@ def test_edge_gap_sources_find_where_an_inclusion_passes_close_to_a_plain_box_ed
 
     h = float(as_size_fn(size_function(ms), ms.box, periodic=False)(jnp.asarray(points))[0])  # as the mesher sees it
     assert h < 2 * gaps[0] + 0.5 / n
+    a = (R + 0.15 / n) / np.sqrt(2)  # continued beyond the last sample, the field crosses the edge by a sliver
+    sliver = Microstructure.from_levelset(np.linalg.norm(x - [1 - a, 0.5, 1 - a], axis=-1) - R, periodic=False)
+    points, _, gaps = edge_gap_sources(sliver)
+    assert len(points) == 1 and -0.5 / n < float(sliver.phi(points)[0]) < 0
+    assert gaps[0] == pytest.approx(-float(sliver.phi(points)[0]))
     clear = Microstructure.from_levelset(np.linalg.norm(x - 0.5, axis=-1) - 0.2, periodic=False)
     assert len(edge_gap_sources(clear)[0]) == 0
     d = x - centre
