@@ -2,7 +2,8 @@
 
 Builds each input in OUT_DIR (tori, rounded cubes, finite cylinders, a labelled image, a
 non-cubic box, a sphere near its images, spheres on a box corner / edge, spheres centred beyond
-an edge, a corner or a face that reach a fraction of a grid step into the box, Gaussian excursion
+an edge, a corner or a face that reach a fraction of a grid step into the box, spheres whose distance is
+not wrapped (plain boxes) passing a fraction of a step from a box edge or corner, Gaussian excursion
 sets from `jaxmesh generate --kind grf`, percolating inclusions: endless fibres, a gyroid
 network, percolating excursion sets; and fields written as users write them: random spheres
 placed with no box clearance, algebraic ellipsoid fields and thresholded random fields that are not
@@ -282,6 +283,27 @@ def _beyond_the_box(name: str, centre, r: float, depth: float, note: str, n: int
     return case
 
 
+def _unwrapped_sphere(name: str, centre, r: float, note: str, n: int = 48):
+    """A sphere's distance sampled as users write it, with no wrapping: not periodic, so it is meshed
+    as a plain box whatever the sweep's mode (cut by the planes it crosses)."""
+    def case(out: Path):
+        np.save(p := out / f"{name}.npy", sd_sphere(_grid(n) - np.asarray(centre), r))
+        return p, ["--no-periodic"], f"{note}, its distance not wrapped (a plain box), {n}^3"
+    return case
+
+
+def _beside_the_far_edge(steps: float, r: float = 0.1, n: int = 48):
+    a = (r + steps / n) / np.sqrt(2)
+    return _unwrapped_sphere(f"edge_layer_{str(steps).replace('.', '')}", (1 - a, 0.5, 1 - a), r,
+                             f"r {r}, cut by x = L and z = L, {steps:g} grid steps from their edge", n)
+
+
+def _beside_the_far_corner(steps: float, r: float = 0.1, n: int = 48):
+    b = (r + steps / n) / np.sqrt(3)
+    return _unwrapped_sphere(f"corner_layer_{str(steps).replace('.', '')}", (1 - b, b, 1 - b), r,
+                             f"r {r}, cut by x = L, y = 0 and z = L, {steps:g} grid steps from their corner", n)
+
+
 # --- percolating inclusions: each reaches its own periodic image ----------------------------------
 
 def _periodic_min(dist, x, box=(1.0, 1.0, 1.0)) -> np.ndarray:
@@ -382,6 +404,9 @@ CASES = {
     "sliver_corner": _beyond_the_box("sliver_corner", (-0.08, -0.08, -0.08), float(np.sqrt(3.0) * 0.08), 0.3,
                                      "sphere centred beyond the corner 0"),
     "cap_shallow": _beyond_the_box("cap_shallow", (0.5, 0.5, -0.1), 0.1, 0.3, "sphere centred beyond the face z = 0"),
+    "edge_layer_03": _beside_the_far_edge(0.3),
+    "edge_layer_015": _beside_the_far_edge(0.15),
+    "corner_layer_02": _beside_the_far_corner(0.2),
     "grf_s1": _excursion(1),
     "grf_s2": _excursion(2),
     "fibre": _straight_fibre("fibre", (0.5, 0.5, 0.0), (0, 0, 1), 0.2, 32, "endless straight fibre along z, r 0.2"),
