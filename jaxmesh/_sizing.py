@@ -651,15 +651,15 @@ def box_gaps(points: np.ndarray, normals: np.ndarray, box, max_angle: float = 20
 
 def edge_gap_sources(microstructure, reach_steps: float = 2.0, samples_per_step: int = 4
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Plain 3D boxes: points on the box edges where an inclusion's level set comes closest to the
-    edge without crossing it (a local minimum of its phi along the edge, positive and below
-    reach_steps grid steps) or crosses it by less than half a step (a minimum in (-step/2, 0)), as
-    (points (k, 3), inclusion ids (k,), gaps (k,) = |phi| there).
+    """Plain 3D boxes: points on the box edges that lie on a plane x_k = L (beyond the last sample)
+    where an inclusion's level set comes closest to the edge without crossing it (a local minimum of
+    its phi along the edge, positive and below reach_steps grid steps) or crosses it by less than half
+    a step (a minimum in (-step/2, 0)), as (points (k, 3), inclusion ids (k,), gaps (k,) = |phi| there).
 
-    Such a layer of matrix beside an edge, or sliver of inclusion across it, lies within the last grid
-    cell, where no grid edge crosses the interface (beyond the last sample x = L holds no node), so no
-    interface source sees it; its box-face triangles kept the box's h against a layer a fraction of a
-    step thick and the volume recovery diverged there.
+    Such a layer of matrix beside the edge, or sliver of inclusion across it, lies within the last grid
+    cell, where no grid edge crosses the interface (the plane x_k = L holds no node), so no interface
+    source sees it; its box-face triangles kept the box's h against a layer a fraction of a step thick
+    and the volume recovery diverged there. The three edges through the origin hold samples.
     """
     ms = microstructure
     if ms.periodic or ms.dim != 3:
@@ -671,6 +671,8 @@ def edge_gap_sources(microstructure, reach_steps: float = 2.0, samples_per_step:
         across = [a for a in range(3) if a != axis]
         t = np.linspace(0.0, box[axis], int(np.ceil(box[axis] / step * samples_per_step)) + 1)
         for corner in itertools.product(*[(0.0, box[a]) for a in across]):
+            if not any(corner):  # an edge through the origin: sampled, its grid edges' crossings are sources
+                continue
             line = np.zeros((len(t), 3))
             line[:, axis], line[:, across] = t, corner
             for index, sel, vals in ms._evaluate_near(line, reach_steps * step):
