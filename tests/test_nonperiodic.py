@@ -333,12 +333,13 @@ def test_a_shallow_cap_the_box_cuts_off_meshes_valid():
 
 @pytest.mark.parametrize("steps", [0.15, 0.3])
 def test_a_sphere_passing_a_fraction_of_a_step_from_an_edge_meshes_valid(steps):
-    """A sphere's distance sampled without wrapping, cut by the planes x = L and z = L and passing 0.3
+    """A sphere's distance sampled without wrapping, cut by the planes x = L and z = L and passing `steps`
     grid steps from their edge: the matrix layer beside the edge lies within the last grid cell, where no
     grid edge crosses the interface. Before sources on the box edges (`edge_gap_sources`) its box faces
     kept the box's h and the volume recovery diverged; before `gradient_scale` ignored the wrap-around
-    jump, the field was divided by 20 and the surfaces failed. At 0.15 steps the field continued beyond
-    the last sample crosses the edge by a sliver 0.0005 thick (no edge source: its surfaces missed it)."""
+    jump, the field was divided by 19.5 and the surfaces failed. At 0.15 steps the field continued beyond
+    the last sample crosses the edge by a sliver thinner than half a step (test_sizing's edge_gap_sources
+    test); without a source there its surfaces missed the crossing."""
     n, R = 48, 0.1
     x = np.stack(np.meshgrid(*[np.arange(n) / n] * 3, indexing="ij"), axis=-1)
     a = (R + steps / n) / np.sqrt(2)

@@ -13,6 +13,7 @@ from jaxmesh._sizing import (
     SizeParams,
     box_gaps,
     cellwise_element_count,
+    edge_gap_sources,
     interface_edges,
     interface_sources,
     limit_gradient,
@@ -22,6 +23,7 @@ from jaxmesh._sizing import (
     size_sources,
     source_sizes,
 )
+from jaxmesh._surface import as_size_fn
 from jaxmesh.geometry._differential import max_abs_curvature
 from jaxmesh.geometry._grid import bspline_coefficients, interpolate_cubic, interpolate_linear
 from jaxmesh.geometry._microstructure import Microstructure
@@ -459,12 +461,10 @@ def test_bad_inputs(two_spheres):
 def test_edge_gap_sources_find_where_an_inclusion_passes_close_to_a_plain_box_edge():
     """A sphere 0.3 grid steps from the edge x = z = L of a plain box (its distance sampled without
     wrapping): one source on that edge at y = 0.5 with the level set's value there as its gap (at 0.15
-    steps the continued field crosses the edge: |phi| there), none on a
-    periodic field or from a sphere well clear of the edges; the size function (clamped at the last node, as
-    the mesher takes it on a plain box) there comes down to about that gap (it stayed at h_max: no interface
-    source lies in the last cell)."""
-    from jaxmesh._sizing import edge_gap_sources
-
+    steps the continued field crosses the edge: |phi| there), none on a periodic field or from a sphere
+    well clear of the edges; the size function (clamped at the last node, as the mesher takes it on a
+    plain box) there comes down to about that gap (it stayed at h_max: no interface source lies in the
+    last cell)."""
     n, R = 48, 0.1
     x = np.stack(np.meshgrid(*[np.arange(n) / n] * 3, indexing="ij"), axis=-1)
     a = (R + 0.3 / n) / np.sqrt(2)
@@ -474,8 +474,6 @@ def test_edge_gap_sources_find_where_an_inclusion_passes_close_to_a_plain_box_ed
     assert len(points) == 1 and ids.tolist() == [1]
     np.testing.assert_allclose(points[0], [1.0, 0.5, 1.0])
     assert 0 < gaps[0] < 0.5 / n and gaps[0] == pytest.approx(float(ms.phi(points)[0]))
-    from jaxmesh._surface import as_size_fn
-
     h = float(as_size_fn(size_function(ms), ms.box, periodic=False)(jnp.asarray(points))[0])  # as the mesher sees it
     assert h < 2 * gaps[0] + 0.5 / n
     a = (R + 0.15 / n) / np.sqrt(2)  # continued beyond the last sample, the field crosses the edge by a sliver
