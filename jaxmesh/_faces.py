@@ -466,7 +466,7 @@ def _gradient_norm(microstructure, x: np.ndarray) -> float:
 def _resample(microstructure, surfaces: dict, ids, scale: float, h_fn, config: SurfaceConfig, resampled: dict):
     """Mesh the inclusions `ids` again at `scale` times the marching-cubes step, in `surfaces`: the
     sampling decides how a surface passes a saddle of the field near zero, and another one often
-    passes clean (its triangles no longer cross, its traces no longer touch on a box face)."""
+    passes clean (its triangles no longer cross or fold, its traces no longer touch on a box face)."""
     resampling = dataclasses.replace(config, mc_step=config.mc_step * scale)
     for inc in microstructure.inclusions:
         if inc.id in ids:
@@ -531,20 +531,23 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig())
     resampled, fewest = {}, None
     mesh = _assemble_resampling(microstructure, surfaces, h_fn, config, t0, resampled)
     for scale in (*_RESAMPLE_SCALES, None):
-        if not config.check_intersections:
-            break
-        t2 = time.perf_counter()
-        bad = intersecting_pairs(mesh.points, mesh.triangles)
-        mesh.metadata["time_intersections"] = time.perf_counter() - t2
-        if not len(bad):
-            break
-        if fewest is None or len(bad) < len(fewest[1]):
-            fewest = (mesh, bad)
-        crossing = np.unique(mesh.sides[bad.reshape(-1)][mesh.kind[bad.reshape(-1)] == INTERFACE, 0])
-        if scale is None or not len(crossing):
-            _raise_intersections(microstructure, *fewest, resampled)  # where the field is worst resolved
-        _resample(microstructure, surfaces, crossing, scale, h_fn, config, resampled)
+        crossing = np.zeros(0, np.int64)
+        if config.check_intersections:
+            t2 = time.perf_counter()
+            bad = intersecting_pairs(mesh.points, mesh.triangles)
+            mesh.metadata["time_intersections"] = time.perf_counter() - t2
+            if len(bad):
+                if fewest is None or len(bad) < len(fewest[1]):
+                    fewest = (mesh, bad)
+                crossing = np.unique(mesh.sides[bad.reshape(-1)][mesh.kind[bad.reshape(-1)] == INTERFACE, 0])
+                if scale is None or not len(crossing):
+                    _raise_intersections(microstructure, *fewest, resampled)  # where the field is worst resolved
+        folding = [i for i, out in surfaces.items() if out["folds"]]
+        if scale is None or not (len(crossing) or folding):
+            break  # folds that no sampling removes are left to the volume stage's recovery
+        _resample(microstructure, surfaces, np.union1d(crossing, folding), scale, h_fn, config, resampled)
         mesh = _assemble_resampling(microstructure, surfaces, h_fn, config, t0, resampled)
+    mesh.metadata["folded_inclusions"] = sorted(int(i) for i, out in surfaces.items() if out["folds"])
     mesh.metadata["resampled_inclusions"] = resampled
     mesh.metadata["n_self_intersections"] = 0 if config.check_intersections else None
     return mesh

@@ -494,8 +494,8 @@ def _mesh_3d(ms, config: MeshConfig, stage, t):
 
     surface = mesh_surfaces(ms, h_jax)
     resampled = surface.metadata.get("resampled_inclusions") or {}
-    note = (f"; inclusions {sorted(resampled)} sampled again (their triangles crossed, or their traces did not "
-            "fit a box face)" if resampled else "")
+    note = (f"; inclusions {sorted(resampled)} sampled again (their triangles crossed or folded, or their traces "
+            "did not fit a box face)" if resampled else "")
     t = stage("surfaces", t, f"{surface.n_points} nodes, {surface.n_triangles} triangles{note}")
 
     interior = _interior_nodes(ms, h_np, config)

@@ -350,6 +350,23 @@ def test_a_sphere_passing_a_fraction_of_a_step_from_an_edge_meshes_valid(steps):
     assert quality_report(mesh)["min_dihedral_deg"] >= 10.0
 
 
+def test_a_cap_whose_surface_folds_beside_its_trace_is_sampled_again_and_meshes_valid():
+    """A sphere cap 0.036 deep behind the plane x = 0 (from the sweep's numpy_spheres_s2 as a plain box) at a
+    uniform h = 0.05: the default sampling leaves a node tenting over a chord of the trace, its triangle
+    folded against the level set; the pocket under it holds no Delaunay tetrahedron and the volume
+    recovery diverged. mesh_surfaces samples a folded inclusion again, as one whose triangles cross."""
+    from jaxmesh._surface import SurfaceConfig, as_size_fn, mesh_inclusion
+
+    n = 48
+    x = np.stack(np.meshgrid(*[np.arange(n) / n] * 3, indexing="ij"), axis=-1)
+    ms = Microstructure.from_levelset(np.linalg.norm(x - np.array([-0.0545, 0.1091, 0.4298]), axis=-1) - 0.0909,
+                                      periodic=False)
+    default = mesh_inclusion(ms.inclusions[0], as_size_fn(0.05, ms.box, False), ms.box, SurfaceConfig(), periodic=False)
+    assert default["folds"] == 1
+    mesh = mesh_rve(ms, MeshConfig(h=0.05, periodic=False))
+    _check_plain_box(mesh, ms)
+
+
 def test_labels_the_box_splits_mesh_one_inclusion_per_part():
     """A periodic label image read as a plain box: the box cuts label 1 into two parts (x near 0 and
     x near 1) and label 2 into four (an edge); each part is meshed as its own inclusion."""
