@@ -228,6 +228,24 @@ def test_crossing_triangles_under_every_sampling_are_refused_with_the_samplings_
     assert calls == [1.0, 0.8, 1.25]
 
 
+def test_folds_left_by_every_sampling_go_on_to_the_volume_stage(monkeypatch):
+    """An inclusion reported folded at every sampling is tried at each scale, then kept (the volume
+    stage's recovery may still close the pocket) and named in the metadata, not refused."""
+    import jaxmesh._faces as faces
+
+    real, calls = faces.mesh_inclusion, []
+
+    def folded_everywhere(inc, h_fn, box, config, periodic):
+        calls.append(config.mc_step)
+        return {**real(inc, h_fn, box, config, periodic), "folds": 1}
+
+    monkeypatch.setattr(faces, "mesh_inclusion", folded_everywhere)
+    ms = Microstructure.from_functions([sphere_sdf([0.5, 0.5, 0.5], 0.2)], (1.0, 1.0, 1.0), (32, 32, 32))
+    m = mesh_surfaces(ms, 0.05)
+    assert calls == [1.0, 0.8, 1.25]
+    assert m.metadata["folded_inclusions"] == [1] and m.metadata["resampled_inclusions"] == {1: 1.25}
+
+
 def _trace_crossing_at_steps(monkeypatch, crossing_steps):
     """The trace on the face x = 0 crosses itself at the mc_steps in crossing_steps: the trace node
     farthest along y moved, in the plane, just outside the far side of the trace, as traces that pinch
