@@ -547,7 +547,7 @@ def mesh_surfaces(microstructure, h, *, config: SurfaceConfig = SurfaceConfig())
             break  # folds that no sampling removes are left to the volume stage's recovery
         _resample(microstructure, surfaces, np.union1d(crossing, folding), scale, h_fn, config, resampled)
         mesh = _assemble_resampling(microstructure, surfaces, h_fn, config, t0, resampled)
-    mesh.metadata["folded_inclusions"] = sorted(int(i) for i, out in surfaces.items() if out["folds"])
+    mesh.metadata["folded_inclusions"] = sorted(int(i) for i in folding)  # the loop leaves by its break
     mesh.metadata["resampled_inclusions"] = resampled
     mesh.metadata["n_self_intersections"] = 0 if config.check_intersections else None
     return mesh
