@@ -77,15 +77,17 @@ def test_closed_sphere_has_none_and_planted_defect_found():
     assert len(intersecting_pairs(two, np.vstack([f, f + len(p)]))) > 0
 
 
-def test_broad_phase_matches_brute_force():
+@pytest.mark.parametrize("scale", [1.0, 1e-3])
+def test_broad_phase_matches_brute_force(scale):
     rng = np.random.default_rng(0)
-    p = rng.random((60, 3))
-    t = rng.integers(0, 60, (40, 3))
+    # graded: a cluster of tiny triangles beside large ones (a box face beside a shallow cap)
+    p = np.vstack([rng.random((60, 3)), 0.5 + 0.01 * rng.random((60, 3))]) * scale
+    t = np.vstack([rng.integers(0, 60, (40, 3)), rng.integers(60, 120, (80, 3))])
     t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])]
     lo, hi = p[t].min(1), p[t].max(1)
-    brute = {(i, j) for i in range(len(t)) for j in range(i + 1, len(t))
-             if np.all(lo[i] <= hi[j]) and np.all(lo[j] <= hi[i])}  # fmt: skip
-    assert {tuple(x) for x in candidate_pairs(p, t, cell=0.1).tolist()} == brute
+    brute = [(i, j) for i in range(len(t)) for j in range(i + 1, len(t))
+             if np.all(lo[i] <= hi[j]) and np.all(lo[j] <= hi[i])]  # fmt: skip
+    assert candidate_pairs(p, t).tolist() == [list(x) for x in brute]
 
 
 def test_bad_input():
