@@ -1,12 +1,12 @@
 """Benchmark of the self-intersection broad phase (`jaxmesh._intersect.candidate_pairs`).
 
 Usage:
-    .venv/bin/python benchmarks/bench_intersect.py [--cluster 20000]
+    .venv/bin/python benchmarks/bench_intersect.py [--cluster 15000]
 
 Two surfaces of marching-cubes triangles: `uniform` (30 spheres on a 160^3 grid) and `graded` (the
-same plus a speck of about --cluster tiny triangles, a sphere of radius 0.01 on its own fine grid: the
-triangles a size function puts on a cap or a trace far thinner than a grid step). Per surface, the time of the
-k-d tree broad phase and of the uniform-grid broad phase it replaced (cell twice the mean box
+same plus a speck of about --cluster tiny triangles, a sphere of radius 0.01 on its own fine grid:
+the triangles a size function puts on a cap or a trace far thinner than a grid step). Per surface,
+the time of the k-d tree broad phase and of the uniform-grid broad phase it replaced (cell twice the mean box
 extent, kept here as the reference), and whether they give the same pairs. Ratios within one run.
 """
 
@@ -84,7 +84,7 @@ def timed(fn, *args):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cluster", type=int, default=15000,
-                    help="about how many tiny triangles the graded surface adds (numpy_spheres_s3's speck: 14,733 in all)")
+                    help="about how many tiny triangles the speck adds (numpy_spheres_s3's: 14,733 in all)")
     args = ap.parse_args()
     print(f"# {datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M} UTC, {platform.machine()}, "
           f"{os.cpu_count()} cores")
