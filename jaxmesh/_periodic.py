@@ -52,6 +52,35 @@ def image_shifts(dim: int, box) -> np.ndarray:
     return k * np.asarray(box, dtype=float)
 
 
+def nearest_images_suffice(centre, spread, box) -> bool:
+    """Whether, per axis, the two images of a point nearest a shape's centre (2^d of the 3^d shifts
+    `image_shifts` gives) always hold its periodic minimum, for a shape between two balls about the
+    centre whose radii differ by spread (0 for a sphere, a_max - a_min for an ellipsoid).
+
+    NumPy only. With the centre in the cell the best image per axis lies within L/2 of it, so the
+    best of the kept images is at a <= D/2 (D the cell's diagonal); a dropped image is on some axis
+    the farthest of three, at least L_min farther in square, so its value is at least
+    sqrt(a^2 + L_min^2) - R while the kept one's is at most a - r: it cannot be smaller when
+    spread <= sqrt(D^2/4 + L_min^2) - D/2 (0.457 L for a cube).
+    """
+    centre, box = np.asarray(centre, float), np.asarray(box, float)
+    half_diagonal = 0.5 * float(np.linalg.norm(box))
+    bound = float(np.hypot(half_diagonal, box.min())) - half_diagonal
+    return bool(np.all((centre >= 0) & (centre <= box))) and float(spread) <= bound
+
+
+def nearest_image_shifts(offsets, box):
+    """Per point, the 2^d shifts of {-L, 0, L}^d that keep, per axis, the two images of offsets
+    (point - centre, (m, d)) nearest the centre: 0 and -L where the offset is >= 0, else 0 and +L.
+    Returns (2^d, m, d), the zero shift first (NumPy or JAX, like offsets)."""
+    xp = _array_module(offsets)
+    dim = offsets.shape[-1]
+    box = xp.asarray(box, dtype=offsets.dtype)
+    other = xp.where(offsets >= 0, -box, box)
+    corners = np.stack(np.meshgrid(*[np.array([0.0, 1.0])] * dim, indexing="ij"), axis=-1).reshape(-1, dim)
+    return xp.asarray(corners, dtype=offsets.dtype)[:, None, :] * other[None]
+
+
 def points_near(points, centres, radii, box, periodic: bool = True) -> list[np.ndarray]:
     """Per centre i, the sorted indices of points within radii[i] of it (minimum image when periodic).
 

@@ -613,6 +613,40 @@ def test_analytic_inclusions_evaluated_together_match_one_by_one(periodic):
     assert inside.sum() > 50
 
 
+@pytest.mark.parametrize("box", [(1.0, 1.0, 1.0), (1.0, 0.6, 1.4), (1.0, 0.8)])
+def test_nearest_images_give_the_values_and_gradients_of_all_images(box):
+    """A periodized sphere or ellipsoid evaluated over the 2^d images nearest its centre equals the
+    minimum over all 3^d images, bit for bit, at points anywhere (far outside the box too), for
+    centres on the box planes and the longest ellipsoid the bound admits; beyond the bound, or with
+    the centre outside the box, all images are kept."""
+    from jaxmesh import ellipsoid_sdf, sphere_sdf
+    from jaxmesh._periodic import nearest_images_suffice
+    from jaxmesh.geometry._microstructure import _Periodized, evaluate, periodized
+
+    d, L = len(box), np.asarray(box)
+    half_diagonal = 0.5 * np.linalg.norm(L)
+    bound = np.hypot(half_diagonal, L.min()) - half_diagonal
+    rng = np.random.default_rng(len(box) + int(10 * box[1]))
+    rotation = np.linalg.qr(rng.normal(size=(d, d)))[0]
+    longest = np.full(d, 0.05)
+    longest[0] = 0.05 + 0.999 * bound
+    fns = [sphere_sdf(jnp.asarray(L * 0.3), 0.2), sphere_sdf(jnp.zeros(d), 0.1),
+           ellipsoid_sdf(jnp.asarray(L * 0.9), jnp.asarray(np.linspace(0.2, 0.06, d)), jnp.asarray(rotation)),
+           ellipsoid_sdf(jnp.asarray(L), jnp.asarray(longest), jnp.asarray(rotation))]
+    pts = rng.uniform(-1.5, 2.5, (3000, d)) * L
+    for f in fns:
+        fast, every = periodized(f, box), _Periodized(f, tuple(box), False)
+        assert fast.nearest_images
+        np.testing.assert_array_equal(evaluate(fast, pts), evaluate(every, pts))
+        grad = [jax.vmap(jax.grad(lambda x, g=g: g(x[None])[0]))(jnp.asarray(pts[:300])) for g in (fast, every)]
+        np.testing.assert_allclose(grad[0], grad[1], atol=1e-12)
+    too_long = np.full(d, 0.05)
+    too_long[0] = 0.05 + 1.01 * bound
+    assert not periodized(ellipsoid_sdf(jnp.asarray(L / 2), jnp.asarray(too_long)), box).nearest_images
+    assert not periodized(sphere_sdf(jnp.asarray(-0.01 * L), 0.1), box).nearest_images
+    assert nearest_images_suffice(L / 2, bound, box) and not nearest_images_suffice(L / 2, 1.001 * bound, box)
+
+
 @pytest.mark.parametrize("periodic", [True, False])
 def test_redistance_makes_a_field_a_distance_with_the_same_signs(periodic):
     """(r^2 - R^2)(1 + 0.8 sin 2 pi x) is far from a distance (its slope on the sphere varies
@@ -727,6 +761,15 @@ def test_rolled_rebuilds_a_grid_microstructure_in_the_shifted_frame():
     shift = np.array([6, 0, 15]) / n
     np.testing.assert_allclose(moved.phi(pts), analytic.phi(np.mod(pts + shift, 1.0)), atol=1e-12)
     assert moved.inclusions[0].description["center"] == pytest.approx([0.25, 0.5, 0.875])
+    from jaxmesh import ellipsoid_sdf, sphere_sdf
+
+    kernels = Microstructure.from_functions(
+        [sphere_sdf(jnp.array([0.1, 0.5, 0.6]), 0.2), ellipsoid_sdf(jnp.array([0.6, 0.2, 0.1]), jnp.array([0.2, 0.1, 0.12]))],
+        (1.0,) * 3, (n,) * 3)
+    moved = kernels.rolled((6, 0, 15))
+    np.testing.assert_allclose(moved.phi(pts), kernels.phi(np.mod(pts + shift, 1.0)), atol=1e-12)
+    assert [len(g) for g in moved._groups()] == [0, 2, 0]  # still analytic kernels, evaluated together
+    assert all(inc.phi_fn.nearest_images for inc in moved.inclusions)
     plain = Microstructure.from_functions([lambda p: jnp.linalg.norm(p - 0.5, axis=-1) - 0.2], (1.0,) * 3, (n,) * 3,
                                           periodic=False)
     with pytest.raises(ValueError, match="needs a periodic microstructure"):

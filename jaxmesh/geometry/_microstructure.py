@@ -18,10 +18,11 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import ndimage
 
-from .._periodic import image_shifts, minimum_image, points_near, wrap
+from .._periodic import image_shifts, minimum_image, nearest_image_shifts, nearest_images_suffice, points_near, wrap
 from . import _components as comp
 from ._components import check_box, check_field, check_order, check_points, gradient_scale, size_errors
 from ._grid import bspline_coefficients, interpolate_cubic, interpolate_linear
+from ._shapes import centre_and_spread, with_centre
 
 _CORE_PAD = 3  # steps of accurate own level set around an inclusion's nodes
 _SPLINE_PAD = {"cubic": 4, "linear": 1}  # steps more: the window's wrap decays as 0.268^steps
@@ -85,10 +86,10 @@ _GATHER_MAX_PARAMS = 64  # per inclusion: a centre, axes, a rotation; not a grid
 
 
 def _analytic_key(phi_fn):
-    """(func, box or None, parameter shapes) of an analytic Partial level set (periodized or not)
-    with a few array parameters, None for anything else: inclusions with equal keys are evaluated
-    in one compiled call."""
-    box = phi_fn.box if isinstance(phi_fn, _Periodized) else None
+    """(func, (box, nearest_images) or None, parameter shapes) of an analytic Partial level set
+    (periodized or not) with a few array parameters, None for anything else: inclusions with equal
+    keys are evaluated in one compiled call."""
+    periodic = (phi_fn.box, phi_fn.nearest_images) if isinstance(phi_fn, _Periodized) else None
     f = phi_fn.fn if isinstance(phi_fn, _Periodized) else phi_fn
     if not isinstance(f, jax.tree_util.Partial) or f.func in _KERNEL_SET or f.keywords:
         return None
@@ -96,37 +97,52 @@ def _analytic_key(phi_fn):
         return None
     if sum(np.size(a) for a in f.args) > _GATHER_MAX_PARAMS:
         return None
-    return f.func, box, tuple((np.shape(a), jnp.result_type(a)) for a in f.args)
+    return f.func, periodic, tuple((np.shape(a), jnp.result_type(a)) for a in f.args)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
-def _gather_kernel(func, box, params, owner, points):
+def _gather_kernel(func, periodic, params, owner, points):
     """Point k at the level set of inclusion owner[k] of a stack (M, d) -> (M,): one pass over the
     points with each point's own parameters, so many small inclusions cost one dispatch."""
     def one(x, *args):
         f = jax.tree_util.Partial(func, *args)
-        return (_Periodized(f, box) if box is not None else f)(x[None])[0]
+        return (_Periodized(f, *periodic) if periodic is not None else f)(x[None])[0]
 
     return jax.vmap(one)(points, *(p[owner] for p in params))
 
 
 class _Periodized(eqx.Module):
     """phi(x) = min over the 3^d image shifts of f(wrap(x) + shift): a periodic level set from an
-    SDF defined on R^d (wrap first, so points far outside the box are handled too).
+    SDF defined on R^d (wrap first, so points far outside the box are handled too). With
+    nearest_images (`periodized`: a sphere_sdf / ellipsoid_sdf for which
+    `_periodic.nearest_images_suffice`), only the 2^d shifts nearest its centre per point: the same
+    values, at 8 exact ellipsoid distances per point instead of 27.
 
     A PyTree: with a Partial f (sphere_sdf, ellipsoid_sdf) inclusions of one kind share their
     compilations; an opaque closure f is a static leaf (one compilation per inclusion)."""
 
     fn: Callable
     box: tuple[float, ...] = eqx.field(static=True)
+    nearest_images: bool = eqx.field(static=True, default=False)
 
     def __call__(self, points):
         points = jnp.asarray(points)
         d = len(self.box)
         lead, pts = points.shape[:-1], wrap(points.reshape(-1, d), jnp.asarray(self.box))
-        shifts = jnp.asarray(image_shifts(d, self.box), dtype=pts.dtype)
-        vals = jnp.reshape(self.fn((pts[None] + shifts[:, None]).reshape(-1, d)), (len(shifts), -1))
+        if self.nearest_images:
+            centre = jax.lax.stop_gradient(centre_and_spread(self.fn)[0]).astype(pts.dtype)
+            shifts = nearest_image_shifts(pts - centre, self.box)
+        else:
+            shifts = jnp.asarray(image_shifts(d, self.box), dtype=pts.dtype)[:, None]
+        vals = jnp.reshape(self.fn((pts[None] + shifts).reshape(-1, d)), (len(shifts), -1))
         return jnp.min(vals, axis=0).reshape(lead)
+
+
+def periodized(fn: Callable, box) -> _Periodized:
+    """The periodic level set of fn (`_Periodized`), over the nearest images only where that is exact."""
+    shape = centre_and_spread(fn)
+    exact = shape is not None and nearest_images_suffice(np.asarray(shape[0]), float(shape[1]), box)
+    return _Periodized(fn, tuple(box), exact)
 
 
 _apply = eqx.filter_jit(lambda fn, pts: fn(pts))  # fn a PyTree: one compilation per kernel and shape
@@ -762,7 +778,7 @@ class Microstructure:
             shifts.append(np.broadcast_to(shift, L.shape))
         lengths = np.array(lengths)
         r = _reach_steps(reach, lengths, shape, spacing, _CORE_PAD + _SPLINE_PAD["cubic"])
-        phis = [_Periodized(f, box) if periodic else f for f in fns]
+        phis = [periodized(f, box) if periodic else f for f in fns]
         dn1, dn2, nearest = _new_dn(shape)
         for c, (f, phi, s, m, shift) in enumerate(zip(fns, phis, starts, lengths, shifts), start=1):
             fo, fs = comp.reach_frame(s, m, shape, periodic, r)
@@ -835,12 +851,18 @@ def _shifted(fn: Callable, offset: np.ndarray, points):
 def _from_shifted_functions(build: Callable, fns, descriptions, spacing: np.ndarray,
                             samples: tuple[int, ...]) -> Microstructure:
     """build(each function shifted so that x = 0 is sample `samples` of this frame); a description's
-    "center" moves with it."""
+    "center" moves with it. Spheres and ellipsoids move their centres (into the box), so they stay
+    analytic kernels evaluated together."""
     offset = np.asarray(samples) * spacing
     box = np.asarray(build.keywords["box"], float)
     moved = [dict(d, center=wrap(np.asarray(d["center"], float) - offset, box).tolist()) if "center" in d else d
              for d in descriptions]
-    return build([functools.partial(_shifted, f, offset) for f in fns], descriptions=moved)
+    shifted = []
+    for f in fns:
+        shape = centre_and_spread(f)
+        g = None if shape is None else with_centre(f, wrap(np.asarray(shape[0], float) - offset, box))
+        shifted.append(g if g is not None else functools.partial(_shifted, f, offset))
+    return build(shifted, descriptions=moved)
 
 
 def _from_rolled_grid(build: Callable, grid: np.ndarray, samples: tuple[int, ...]) -> Microstructure:

@@ -215,6 +215,27 @@ def ellipsoid_sdf(
     return jax.tree_util.Partial(_ellipsoid_phi, jnp.asarray(center), jnp.asarray(axes), jnp.asarray(rotation))
 
 
+def centre_and_spread(fn) -> tuple[Array, Array] | None:
+    """(centre (d,), R - r) of a sphere_sdf / ellipsoid_sdf function: the shape lies between the balls
+    of radii r and R about the centre (its smallest and largest semi-axes); None for any other
+    function. Traced parameters give traced results."""
+    if not isinstance(fn, jax.tree_util.Partial) or fn.keywords:
+        return None
+    if fn.func is _sphere_phi:
+        return fn.args[0], jnp.zeros(())
+    if fn.func is _ellipsoid_phi:
+        return fn.args[0], jnp.max(fn.args[1]) - jnp.min(fn.args[1])
+    return None
+
+
+def with_centre(fn, centre):
+    """The sphere_sdf / ellipsoid_sdf function fn moved to centre (same size and orientation); None
+    for any other function."""
+    if centre_and_spread(fn) is None:
+        return None
+    return jax.tree_util.Partial(fn.func, jnp.asarray(centre, dtype=fn.args[0].dtype), *fn.args[1:])
+
+
 def ellipsoid_volume(axes: Float[ArrayLike, " d"]):
     """Volume (3D) or area (2D) of the ellipsoid with semi-axes axes (d,): omega_d * prod(a_i).
 
