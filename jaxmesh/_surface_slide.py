@@ -128,8 +128,8 @@ class SurfaceSlide:
         if not len(moved):
             return 0
         x0, n = points[moved], self.normals[moved]
-        t, phi = _secant_roots(lambda t: self._phi(x0 + t[:, None] * n), self._phi(x0), self.grad_norm[moved],
-                               self.tol)
+        t, phi = _secant_roots(lambda t, rows: self._phi(x0[rows] + t[:, None] * n[rows]), self._phi(x0),
+                               self.grad_norm[moved], self.tol)
         off_set = np.abs(phi) > self.tol
         points[moved] = np.where(off_set[:, None], before[moved], x0 + t[:, None] * n)
         undone = int(off_set.sum())
@@ -147,20 +147,22 @@ class SurfaceSlide:
 
 
 def _secant_roots(f: Callable, f0: np.ndarray, slope: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
-    """Roots near 0 of k line functions f(t) (k,) -> (k,), f(0) = f0, by the secant method, the
-    first step with the given slope. Returns (t, f(t)); rows that do not reach |f| <= tol in
-    SECANT_STEPS keep their last iterate."""
-    t_prev, f_prev = np.zeros_like(f0), f0
+    """Roots near 0 of k line functions, f(t, rows) the values of rows' functions at t (len(rows),),
+    f(0) = f0, by the secant method, the first step with the given slope. Converged rows are not
+    evaluated again (each level-set evaluation is the cost). Returns (t, f(t)); rows that do not
+    reach |f| <= tol in SECANT_STEPS keep their last iterate."""
+    t_prev, f_prev = np.zeros_like(f0), np.array(f0, dtype=float)
     t = -f0 / slope
-    f_t = f(t)
+    f_t = np.array(f(t, np.arange(len(f0))), dtype=float)
     for _ in range(SECANT_STEPS):
-        if np.abs(f_t).max(initial=0.0) <= tol:
+        active = np.flatnonzero(np.abs(f_t) > tol)
+        if not len(active):
             break
-        df = f_t - f_prev
-        step = np.where((np.abs(f_t) > tol) & (df != 0), f_t * (t - t_prev) / np.where(df != 0, df, 1.0), 0.0)
-        t_prev, f_prev = t, f_t
-        t = t - step
-        f_t = f(t)
+        df = f_t[active] - f_prev[active]
+        step = np.where(df != 0, f_t[active] * (t[active] - t_prev[active]) / np.where(df != 0, df, 1.0), 0.0)
+        t_prev[active], f_prev[active] = t[active], f_t[active]
+        t[active] -= step
+        f_t[active] = f(t[active], active)
     return t, f_t
 
 

@@ -573,6 +573,31 @@ def test_projection_undoes_a_move_that_inverts_a_tet_and_keeps_a_small_one(spher
         assert signed_volumes(points, cells).min() > 0
 
 
+def test_secant_roots_evaluates_only_the_rows_not_yet_converged():
+    """`_secant_roots` finds each row's root near 0 and evaluates a row again only while it is
+    above the tolerance: a linear row is done after its first step, a row already at its root (here a
+    zero function) at once, and the cubic ones take more steps."""
+    from jaxmesh._surface_slide import SECANT_STEPS, _secant_roots
+
+    roots = np.array([0.01, -0.02, 0.003, 0.0])
+    cubic = np.array([False, True, True, False])
+    calls = []
+
+    def f(t, rows):
+        calls.append(np.array(rows))
+        u = t - roots[rows]
+        return np.where(cubic[rows], u + 40.0 * u**3, u) * np.where(rows == 3, 0.0, 1.0)
+
+    f0 = f(np.zeros(4), np.arange(4))
+    calls.clear()
+    t, values = _secant_roots(f, f0, np.ones(4), 1e-13)
+    np.testing.assert_allclose(t[:3], roots[:3], atol=1e-12)
+    assert np.abs(values[:3]).max() <= 1e-13 and t[3] == 0.0
+    assert 2 < len(calls) <= SECANT_STEPS + 1
+    np.testing.assert_array_equal(calls[0], np.arange(4))
+    assert all(set(c) <= {1, 2} for c in calls[1:])  # rows 0 (linear) and 3 (zero) are done at once
+
+
 @pytest.mark.parametrize("chunk", [7, 100, 2**20])
 def test_bcc_lattice_in_slabs_is_the_full_lattice_masked(chunk):
     """`_bcc_where` builds the octave lattice in slabs along x (the finest octave's full lattice can
