@@ -146,7 +146,8 @@ def _check_meshable(specs, box, grid_shape, min_gap: float, step: float) -> None
     except ValueError as err:
         hint = (f" Here: --min-gap {min_gap:g} is under one grid step ({step:.4g}): give --min-gap "
                 f"{_DEFAULT_GAP_STEPS * step:.3g} or more, or a finer --grid." if min_gap < step else
-                " Here: a finer --grid or a larger --radius resolves small inclusions.")
+                " Here: a finer --grid, a larger --radius or a smaller --radius-std (radii are drawn down to "
+                "a quarter of the mean) resolves small inclusions.")
         raise ValueError(f"the RVE drawn would be refused by `jaxmesh mesh`, so nothing was written: {err}"
                          + hint) from None
 

@@ -100,7 +100,8 @@ def test_generate_keeps_inclusions_clear_of_the_box(tmp_path, box_gap):
 def test_generate_never_writes_a_file_that_mesh_refuses(tmp_path, capsys):
     """The mesher refuses inclusions closer than one grid step. At --grid 40 (step 0.025) the default
     gap follows the grid and the file loads; a --min-gap under one step that gives such pairs is
-    refused before anything is written, with the step and a gap that works."""
+    refused before anything is written, with the step and a gap that works; so are radii drawn too
+    small for the grid."""
     from jaxmesh import load_input
 
     out = tmp_path / "b.npz"
@@ -118,6 +119,13 @@ def test_generate_never_writes_a_file_that_mesh_refuses(tmp_path, capsys):
     gaps = np.linalg.norm(delta, axis=-1) - radii[:, None] - radii[None]
     assert gaps[~np.eye(len(radii), dtype=bool)].min() >= 1.1 * 0.025 - 1e-9
     assert load_input(out).grid_shape == (40, 40, 60)
+    # radii spread wider than their mean: the smallest drawn spans no grid node
+    spread = ["generate", str(tmp_path / "s.npz"), "--kind", "sphere", "--n", "60", "--volume-fraction", "0.4",
+              "--radius-std", "0.5", "--grid", "64", "--seed", "51"]
+    assert main(spread) == 2
+    err = capsys.readouterr().err
+    assert "smaller than a grid step" in err and "a smaller --radius-std" in err
+    assert not (tmp_path / "s.npz").exists()
 
 
 def test_generate_says_when_the_count_stops_it_short_of_the_fraction(tmp_path, capsys):
