@@ -764,7 +764,8 @@ def test_rolled_rebuilds_a_grid_microstructure_in_the_shifted_frame():
     from jaxmesh import ellipsoid_sdf, sphere_sdf
 
     kernels = Microstructure.from_functions(
-        [sphere_sdf(jnp.array([0.1, 0.5, 0.6]), 0.2), ellipsoid_sdf(jnp.array([0.6, 0.2, 0.1]), jnp.array([0.2, 0.1, 0.12]))],
+        [sphere_sdf(jnp.array([0.1, 0.5, 0.6]), 0.2),
+         ellipsoid_sdf(jnp.array([0.6, 0.2, 0.1]), jnp.array([0.2, 0.1, 0.12]))],
         (1.0,) * 3, (n,) * 3)
     moved = kernels.rolled((6, 0, 15))
     np.testing.assert_allclose(moved.phi(pts), kernels.phi(np.mod(pts + shift, 1.0)), atol=1e-12)
