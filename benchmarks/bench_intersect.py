@@ -83,8 +83,7 @@ def timed(fn, *args):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cluster", type=int, default=15000,
-                    help="about how many tiny triangles the speck adds (numpy_spheres_s3's: 14,733 in all)")
+    ap.add_argument("--cluster", type=int, default=15000, help="about how many tiny triangles the speck adds")
     args = ap.parse_args()
     print(f"# {datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M} UTC, {platform.machine()}, "
           f"{os.cpu_count()} cores")
