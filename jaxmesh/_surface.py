@@ -26,9 +26,11 @@ from ._surface_ops import (
     TraceMismatch,
     collapse_edges,
     cut_plane,
+    apply_flips,
     flip_edges,
     half_edges,
     match_opposite_traces,
+    plane_chords,
     refine,
     snap_candidates,
     straddling,
@@ -370,6 +372,19 @@ def unfold(points, tris, on_plane, phi_fn, newton_steps: int, rounds: int = 5) -
     return points
 
 
+def flip_plane_chords(points, tris, on_plane, phi_fn) -> np.ndarray:
+    """Flip the edges along which the cut surface touches a box plane (`plane_chords`) where both
+    new triangles agree with the level set's gradient. Returns the triangles."""
+    pairs = plane_chords(points, tris, on_plane)
+    if not len(pairs[0]):
+        return tris
+    u, v, c, d = pairs[:4]
+    ok = ~(folded(points, np.stack([u, d, c], 1), phi_fn) | folded(points, np.stack([d, v, c], 1), phi_fn))
+    tris = tris.copy()
+    apply_flips(tris, pairs, np.flatnonzero(ok))
+    return tris
+
+
 def neighbour_mean(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
     """(n, 3) mean of each node's edge neighbours on the surface tris."""
     edges, _ = half_edges(tris, len(points))
@@ -707,6 +722,7 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
         else:  # last resort: cut what still straddles without snapping
             pts, tris, on_plane = cut_by_box(pts, tris, on_plane, phi_fn, box, h_fn,
                                              dataclasses.replace(config, snap_fraction=0.0))
+        tris = flip_plane_chords(pts, tris, on_plane, phi_fn)
     if periodic and capped:
         pts, tris, on_plane = _periodic_traces(pts, tris, on_plane, phi_fn, box, capped, inclusion.id, config)
     if periodic:

@@ -137,22 +137,54 @@ def flip_edges(
         cand = np.flatnonzero(ok & (gain > tol))
         if cand.size == 0:
             break
-        existing = set((np.minimum(u, v) * n + np.maximum(u, v)).tolist())
-        used = np.zeros(len(tri), bool)
-        flipped = 0
-        for g in cand[np.argsort(-gain[cand])]:
-            a, b = t1[g], t2[g]
-            key = min(c[g], d[g]) * n + max(c[g], d[g])
-            if used[a] or used[b] or key in existing:
-                continue
-            used[a] = used[b] = True
-            existing.add(key)
-            tri[a], tri[b] = new1[g], new2[g]
-            flipped += 1
+        flipped = apply_flips(tri, (u, v, c, d, t1, t2), cand[np.argsort(-gain[cand])])
         total += flipped
         if flipped == 0:
             break
     return tri, total
+
+
+def apply_flips(tri: np.ndarray, pairs, order: np.ndarray) -> int:
+    """Flip, in place and in the given order, the edges order of `edge_pairs` rows pairs = (u, v,
+    c, d, t1, t2) to c-d: t1 becomes (u, d, c), t2 (d, v, c). A flip is skipped when one of its
+    triangles already changed in this call or when the edge c-d exists (a non-manifold surface).
+    Returns the number of flips."""
+    u, v, c, d, t1, t2 = pairs
+    n = int(tri.max()) + 1
+    edges, _ = half_edges(tri, n)
+    existing = set((edges[:, 0] * n + edges[:, 1]).tolist())
+    used = np.zeros(len(tri), bool)
+    flipped = 0
+    for g in order:
+        a, b = t1[g], t2[g]
+        key = min(c[g], d[g]) * n + max(c[g], d[g])
+        if used[a] or used[b] or key in existing:
+            continue
+        used[a] = used[b] = True
+        existing.add(key)
+        tri[a], tri[b] = (u[g], d[g], c[g]), (d[g], v[g], c[g])
+        flipped += 1
+    return flipped
+
+
+def plane_chords(points: np.ndarray, tris: np.ndarray, on_plane: np.ndarray):
+    """`edge_pairs` rows (u, v, c, d, t1, t2) of the edges whose ends lie on one box plane while
+    both their triangles lie strictly on one side of it: the surface touches the plane along a
+    segment that is no trace. Seen beside a shallow cut cap: a chord skipping a trace node, with a
+    degree-3 node tenting over the sliver between chord and trace, one of its triangles folded
+    (the pocket under it is a hole in the volume mesh). Flipping the chord removes it.
+
+    Args:
+        points: (n, 3). tris: (t, 3). on_plane: (n, 3) bool, coordinate a held exactly on a box plane.
+    """
+    u, v, c, d, t1, t2 = edge_pairs(tris, len(points))
+    chord = np.zeros(len(u), bool)
+    for a in range(3):
+        plane = points[u, a]
+        same = on_plane[u, a] & on_plane[v, a] & (points[v, a] == plane)
+        side_c, side_d = np.sign(points[c, a] - plane), np.sign(points[d, a] - plane)
+        chord |= same & (side_c == side_d) & (side_c != 0)
+    return tuple(x[chord] for x in (u, v, c, d, t1, t2))
 
 
 def plane_flags(points: np.ndarray, box) -> np.ndarray:

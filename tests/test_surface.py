@@ -11,10 +11,11 @@ from scipy.spatial import ConvexHull
 from jaxmesh._errors import MeshingError
 from jaxmesh._intersect import intersecting_pairs
 from jaxmesh._quality import cell_quality, min_angles
-from jaxmesh._surface import (SurfaceConfig, as_size_fn, enclosed_volume, extract, folded, mesh_inclusion, project,
-                              refuse_nodes_off_the_level_set, release_touching, revert_around_defects, unfold)
-from jaxmesh._surface_ops import (collapse_edges, cut_plane, flip_edges, half_edges, refine, straddling,
-                                  touching_plane_nodes)
+from jaxmesh._surface import (SurfaceConfig, as_size_fn, enclosed_volume, extract, flip_plane_chords, folded,
+                              mesh_inclusion, project, refuse_nodes_off_the_level_set, release_touching,
+                              revert_around_defects, unfold)
+from jaxmesh._surface_ops import (collapse_edges, cut_plane, flip_edges, half_edges, plane_chords, plane_flags, refine,
+                                  straddling, touching_plane_nodes)
 from jaxmesh.geometry._microstructure import Microstructure
 from jaxmesh.geometry._shapes import sphere_sdf
 
@@ -88,6 +89,47 @@ def test_a_flip_never_lays_a_triangle_flat_on_a_box_plane():
     assert flat(t) == 0 and flat(flip_edges(p, t)[0]) == 1  # the unguarded flip does it
     guarded, _ = flip_edges(p, t, on_plane=on_plane)
     assert flat(guarded) == 0 and _closed(guarded)
+
+
+def _boundary_edges(tris):
+    e = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+    uniq, cnt = np.unique(e, axis=0, return_counts=True)
+    return {tuple(x) for x in uniq[cnt == 1].tolist()}
+
+
+def test_a_chord_on_the_box_plane_beside_a_trace_is_flipped_away():
+    # the patch of the plain-box excursion set `jaxmesh generate --kind grf --volume-fraction 0.2
+    # --correlation-length 0.12 --grid 40 --seed 61`, inclusion 3 (a lens 0.01 deep that x = 0 cuts):
+    # trace nodes 7, 1, 4 on x = 0, the chord 4-7 skipping 1, and node 3 (degree 3) tenting over the
+    # sliver between them; its triangle (4, 7, 3) faces into the inclusion
+    p = np.array([[0, 0.8530018, 0.3606393], [0, 0.8570499, 0.3639332], [0, 0.860558, 0.3670755],
+                  [0.0009393, 0.8565276, 0.3647928], [0, 0.8589479, 0.3656079], [0.0025089, 0.8517663, 0.3634075],
+                  [0.0034303, 0.8527895, 0.3655787], [0, 0.8558164, 0.3628828], [0.003431, 0.8544071, 0.3668479],
+                  [0.0033829, 0.8560165, 0.3681829], [0.0023652, 0.8579092, 0.3682497]])
+    t = np.array([[1, 3, 7], [4, 3, 1], [10, 4, 2], [7, 5, 0], [5, 7, 6], [7, 8, 6], [4, 7, 3], [7, 4, 8], [4, 9, 8],
+                  [9, 4, 10]])
+    gradient = np.array([1.16, 0.72, -0.83])  # the level set's there, to a few percent
+
+    def phi(x):
+        return x @ gradient
+
+    on_plane = plane_flags(p, (1.0, 1.0, 1.0))
+    assert np.flatnonzero(folded(p, t, phi)).tolist() == [6]
+    u, v, *_ = plane_chords(p, t, on_plane)
+    assert sorted(np.r_[u, v].tolist()) == [4, 7]
+    # a trace edge (its other triangle beyond the plane) is no chord
+    beyond = np.vstack([p, [-0.002, 0.8575, 0.364]])
+    across = t.copy()
+    across[7] = [7, 4, 11]
+    assert not len(plane_chords(beyond, across, plane_flags(beyond, (1.0, 1.0, 1.0)))[0])
+    flipped = flip_plane_chords(p, t, on_plane, phi)
+    assert not folded(p, flipped, phi).any()
+    assert not len(plane_chords(p, flipped, on_plane)[0])
+    assert _boundary_edges(flipped) == _boundary_edges(t)  # the patch's rim, traces included, stays
+    directed = np.concatenate([flipped[:, [0, 1]], flipped[:, [1, 2]], flipped[:, [2, 0]]])
+    assert len(np.unique(directed, axis=0)) == len(directed)  # still consistently oriented
+    # a flip whose triangles would fold is not made
+    assert np.array_equal(flip_plane_chords(p, t, on_plane, lambda x: -phi(x)), t)
 
 
 def test_unfold_removes_a_fold_and_keeps_nodes_on_the_level_set(sphere):
