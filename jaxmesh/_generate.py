@@ -553,10 +553,16 @@ def random_inclusions(
         if bad:
             raise MeshingError("random_inclusions", f"densified packing failed the exact gap check at {bad[:5]}.")
     if volume_fraction is not None and (n is None or len(used) < n) and abs(fraction - volume_fraction) > tol:
+        share = vols / box_volume
+        if share.min() > tol:  # the ones left out would overshoot the target
+            hint = (f"each of these inclusions fills {share.min():.1%} to {share.max():.1%} of the box, so the "
+                    f"fraction moves in steps coarser than +- {tol}: smaller radii (more of them)")
+        else:
+            hint = f"n={n} is too small for this fraction with these radii"
         raise MeshingError(
             "random_inclusions",
             f"reached volume fraction {fraction:.4f} with {len(used)} inclusions, target {volume_fraction} "
-            f"+- {tol}. Hint: n={n} is too small for this fraction with these radii.",
+            f"+- {tol}. Hint: {hint}.",
         )
     kind = "sphere" if shape == "sphere" else "ellipsoid"
     return [InclusionSpec(kind, pack.centers[i].copy(), axes[i], rots[i]) for i in used]

@@ -136,6 +136,18 @@ def test_generate_says_when_the_count_stops_it_short_of_the_fraction(tmp_path, c
     assert "note:" not in capsys.readouterr().out
 
 
+def test_generate_says_when_each_inclusion_steps_the_fraction_past_its_tolerance(tmp_path, capsys):
+    # 8 long ellipses drawn, each 5-27 % of a 1 x 0.5 box: two reach 0.191, a third overshoots 0.2 +- 0.005
+    out = tmp_path / "f.npz"
+    args = ["generate", str(out), "--dim", "2", "--kind", "ellipsoid", "--n", "8", "--volume-fraction", "0.2",
+            "--max-aspect", "8", "--radius", "0.23", "--radius-std", "0.005", "--box", "1", "0.5", "--grid", "128",
+            "--seed", "71"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "with 2 inclusions" in err and "steps coarser than +- 0.005" in err and "smaller radii" in err
+    assert not out.exists()
+
+
 def test_generate_with_count_and_fraction_gives_both(tmp_path, capsys):
     """`--n 40 --volume-fraction 0.4` (no --radius) gave 9 circles of the default radius; now 40 at 0.4."""
     args = ["generate", str(tmp_path / "c.npz"), "--dim", "2", "--n", "40", "--volume-fraction", "0.4", "--grid", "128",
