@@ -24,9 +24,9 @@ from ._periodic import minimum_image, wrap
 from ._quality import cross3, min_angles
 from ._surface_ops import (
     TraceMismatch,
+    apply_flips,
     collapse_edges,
     cut_plane,
-    apply_flips,
     flip_edges,
     half_edges,
     match_opposite_traces,

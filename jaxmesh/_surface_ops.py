@@ -145,10 +145,10 @@ def flip_edges(
 
 
 def apply_flips(tri: np.ndarray, pairs, order: np.ndarray) -> int:
-    """Flip, in place and in the given order, the edges order of `edge_pairs` rows pairs = (u, v,
-    c, d, t1, t2) to c-d: t1 becomes (u, d, c), t2 (d, v, c). A flip is skipped when one of its
-    triangles already changed in this call or when the edge c-d exists (a non-manifold surface).
-    Returns the number of flips."""
+    """Flip, in place, the edges u-v of the rows `order` of pairs = (u, v, c, d, t1, t2) (from
+    `edge_pairs`), in that order, to c-d: t1 becomes (u, d, c), t2 (d, v, c). A flip is skipped when
+    one of its triangles already changed in this call or when the edge c-d exists (it would make
+    the surface non-manifold). Returns the number of flips."""
     u, v, c, d, t1, t2 = pairs
     n = int(tri.max()) + 1
     edges, _ = half_edges(tri, n)
@@ -172,7 +172,7 @@ def plane_chords(points: np.ndarray, tris: np.ndarray, on_plane: np.ndarray):
     both their triangles lie strictly on one side of it: the surface touches the plane along a
     segment that is no trace. Seen beside a shallow cut cap: a chord skipping a trace node, with a
     degree-3 node tenting over the sliver between chord and trace, one of its triangles folded
-    (the pocket under it is a hole in the volume mesh). Flipping the chord removes it.
+    (the surface then crossed itself there). Flipping the chord removes it.
 
     Args:
         points: (n, 3). tris: (t, 3). on_plane: (n, 3) bool, coordinate a held exactly on a box plane.
