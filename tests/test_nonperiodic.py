@@ -350,19 +350,27 @@ def test_a_sphere_passing_a_fraction_of_a_step_from_an_edge_meshes_valid(steps):
     assert quality_report(mesh)["min_dihedral_deg"] >= 10.0
 
 
-def test_a_cap_whose_surface_folds_beside_its_trace_is_sampled_again_and_meshes_valid():
+def test_a_cap_whose_surface_folds_beside_its_trace_meshes_valid(monkeypatch):
     """A sphere cap 0.036 deep behind the plane x = 0 (from the sweep's numpy_spheres_s2 as a plain box) at a
     uniform h = 0.05: the default sampling leaves a node tenting over a chord of the trace, its triangle
     folded against the level set; the pocket under it holds no Delaunay tetrahedron and the volume
-    recovery diverged. mesh_surfaces samples a folded inclusion again, as one whose triangles cross."""
-    from jaxmesh._surface import SurfaceConfig, as_size_fn, mesh_inclusion
+    recovery diverged. The chord is flipped after the cut (`flip_plane_chords`); without that flip the
+    fold stays (a folded inclusion is then sampled again, tests/test_faces.py)."""
+    import jaxmesh._surface as surface
 
     n = 48
     x = np.stack(np.meshgrid(*[np.arange(n) / n] * 3, indexing="ij"), axis=-1)
     ms = Microstructure.from_levelset(np.linalg.norm(x - np.array([-0.0545, 0.1091, 0.4298]), axis=-1) - 0.0909,
                                       periodic=False)
-    default = mesh_inclusion(ms.inclusions[0], as_size_fn(0.05, ms.box, False), ms.box, SurfaceConfig(), periodic=False)
-    assert default["folds"] == 1
+
+    def cap_surface():
+        return surface.mesh_inclusion(ms.inclusions[0], surface.as_size_fn(0.05, ms.box, False), ms.box,
+                                      surface.SurfaceConfig(), periodic=False)
+
+    assert cap_surface()["folds"] == 0
+    with monkeypatch.context() as patch:
+        patch.setattr(surface, "flip_plane_chords", lambda points, tris, on_plane, phi_fn: tris)
+        assert cap_surface()["folds"] == 1
     mesh = mesh_rve(ms, MeshConfig(h=0.05, periodic=False))
     _check_plain_box(mesh, ms)
 
