@@ -381,7 +381,7 @@ def flip_plane_chords(points, tris, on_plane, phi_fn) -> np.ndarray:
     u, v, c, d = pairs[:4]
     ok = ~(folded(points, np.stack([u, d, c], 1), phi_fn) | folded(points, np.stack([d, v, c], 1), phi_fn))
     tris = tris.copy()
-    apply_flips(tris, pairs, np.flatnonzero(ok))
+    apply_flips(tris, pairs, np.flatnonzero(ok), half_edges(tris, len(points))[0])
     return tris
 
 

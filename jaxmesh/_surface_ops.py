@@ -137,22 +137,22 @@ def flip_edges(
         cand = np.flatnonzero(ok & (gain > tol))
         if cand.size == 0:
             break
-        flipped = apply_flips(tri, (u, v, c, d, t1, t2), cand[np.argsort(-gain[cand])])
+        # a closed surface: its interior edges u-v are all of its edges
+        flipped = apply_flips(tri, (u, v, c, d, t1, t2), cand[np.argsort(-gain[cand])], np.stack([u, v], 1))
         total += flipped
         if flipped == 0:
             break
     return tri, total
 
 
-def apply_flips(tri: np.ndarray, pairs, order: np.ndarray) -> int:
+def apply_flips(tri: np.ndarray, pairs, order: np.ndarray, edges: np.ndarray) -> int:
     """Flip, in place, the edges u-v of the rows `order` of pairs = (u, v, c, d, t1, t2) (from
     `edge_pairs`), in that order, to c-d: t1 becomes (u, d, c), t2 (d, v, c). A flip is skipped when
     one of its triangles already changed in this call or when the edge c-d exists (it would make
-    the surface non-manifold). Returns the number of flips."""
+    the surface non-manifold). edges: (e, 2) every edge of tri. Returns the number of flips."""
     u, v, c, d, t1, t2 = pairs
     n = int(tri.max()) + 1
-    edges, _ = half_edges(tri, n)
-    existing = set((edges[:, 0] * n + edges[:, 1]).tolist())
+    existing = set((np.minimum(edges[:, 0], edges[:, 1]) * n + np.maximum(edges[:, 0], edges[:, 1])).tolist())
     used = np.zeros(len(tri), bool)
     flipped = 0
     for g in order:
