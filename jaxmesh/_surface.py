@@ -27,8 +27,11 @@ from ._surface_ops import (
     apply_flips,
     collapse_edges,
     cut_plane,
+    drop_unused_nodes,
     flip_edges,
     half_edges,
+    hole_fillings,
+    in_one_box_plane,
     match_opposite_traces,
     plane_chords,
     refine,
@@ -385,6 +388,42 @@ def flip_plane_chords(points, tris, on_plane, phi_fn) -> np.ndarray:
     return tris
 
 
+def remove_fold_nodes(points, tris, on_plane, phi_fn, rounds: int = 3):
+    """Remove the free nodes of folded triangles, filling each hole (`hole_fillings`: the node's star,
+    or the star and one triangle beside it) with the fan of largest smallest angle in which no
+    triangle folds or lies in a box plane. Seen beside shallow box cuts, where no resampling helped:
+    a degree-3 node pushed through its ring, and one tenting over a chord on the plane whose flip
+    would fold (the surface crossed itself at both). Returns (points, tris, on_plane)."""
+    for _ in range(rounds):
+        bad = folded(points, tris, phi_fn)
+        if not bad.any():
+            break
+        nodes, count = np.unique(tris[bad], return_counts=True)
+        free = ~on_plane[nodes].any(axis=1)
+        nodes = nodes[free][np.argsort(-count[free], kind="stable")]
+        removed_any = False
+        for node in nodes.tolist():
+            fillings = hole_fillings(tris, node) if bad[(tris == node).any(axis=1)].any() else []
+            if not fillings:
+                continue  # its folds went with an earlier node's
+            new = np.vstack([fan for _, fan in fillings])
+            ok = ~(folded(points, new, phi_fn) | in_one_box_plane(points, on_plane, new))
+            angle = min_angles(points, new)
+            parts = np.split(np.arange(len(new)), np.cumsum([len(fan) for _, fan in fillings])[:-1])
+            scores = [angle[part].min() if ok[part].all() else -1.0 for part in parts]
+            best = int(np.argmax(scores))
+            if scores[best] <= 0:
+                continue
+            removed, fan = fillings[best]
+            tris = np.vstack([np.delete(tris, removed, axis=0), fan])
+            bad = np.concatenate([np.delete(bad, removed), np.zeros(len(fan), bool)])
+            removed_any = True
+        if not removed_any:
+            break
+        points, tris, on_plane = drop_unused_nodes(points, tris, on_plane)
+    return points, tris, on_plane
+
+
 def neighbour_mean(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
     """(n, 3) mean of each node's edge neighbours on the surface tris."""
     edges, _ = half_edges(tris, len(points))
@@ -723,6 +762,7 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
             pts, tris, on_plane = cut_by_box(pts, tris, on_plane, phi_fn, box, h_fn,
                                              dataclasses.replace(config, snap_fraction=0.0))
         tris = flip_plane_chords(pts, tris, on_plane, phi_fn)
+        pts, tris, on_plane = remove_fold_nodes(pts, tris, on_plane, phi_fn)
     if periodic and capped:
         pts, tris, on_plane = _periodic_traces(pts, tris, on_plane, phi_fn, box, capped, inclusion.id, config)
     if periodic:

@@ -187,6 +187,70 @@ def plane_chords(points: np.ndarray, tris: np.ndarray, on_plane: np.ndarray):
     return tuple(x[chord] for x in (u, v, c, d, t1, t2))
 
 
+def star_ring(tris: np.ndarray, node: int) -> tuple[np.ndarray, list[int]] | None:
+    """(the ids of the node's triangles, its ring of neighbours in their orientation: triangle
+    (node, ring[i], ring[i + 1])), or None where the star is no closed disc (a node on the border of
+    an open surface, or a pinched star)."""
+    star = np.flatnonzero((tris == node).any(axis=1))
+    if not len(star):
+        return None
+    following = {}
+    for t in star:
+        a, b, c = tris[t].tolist()
+        u, v = (b, c) if a == node else (c, a) if b == node else (a, b)
+        if u in following:
+            return None
+        following[u] = v
+    ring = [next(iter(following))]
+    for _ in range(len(following) - 1):
+        ring.append(following.get(ring[-1], -1))
+    if following.get(ring[-1]) != ring[0] or len(set(ring)) != len(ring):
+        return None
+    return star, ring
+
+
+def hole_fillings(tris: np.ndarray, node: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Ways to remove `node` from a surface: (ids of the triangles removed, triangles filling the
+    hole), the hole being the node's star, or its star and the triangle beyond one ring edge, filled
+    by a fan from each polygon vertex (orientation kept). Fillings with an edge or a triangle the
+    surface already has elsewhere are left out (it would no longer be a manifold). Empty where
+    `star_ring` is None."""
+    found = star_ring(tris, node)
+    if found is None:
+        return []
+    star, ring = found
+    holes = [(star, ring)]
+    for i, (a, b) in enumerate(zip(ring, ring[1:] + ring[:1])):
+        beyond = np.flatnonzero((tris == a).any(axis=1) & (tris == b).any(axis=1) & ~(tris == node).any(axis=1))
+        if len(beyond) != 1:
+            continue  # a border edge of an open surface
+        apex = int(np.setdiff1d(tris[beyond[0]], (a, b))[0])
+        if apex not in ring:
+            holes.append((np.append(star, beyond), ring[: i + 1] + [apex] + ring[i + 1:]))
+    fillings = []
+    for removed, polygon in holes:
+        k = len(polygon)
+        around = np.flatnonzero(np.isin(tris, polygon).any(axis=1))
+        around = around[~np.isin(around, removed)]
+        for j in range(k):
+            fan = np.array([(polygon[j], polygon[(j + i) % k], polygon[(j + i + 1) % k]) for i in range(1, k - 1)])
+            diagonals = [(polygon[j], polygon[(j + i) % k]) for i in range(2, k - 1)]
+            if any(((tris[around] == p).any(axis=1) & (tris[around] == q).any(axis=1)).any() for p, q in diagonals):
+                continue
+            if (np.sort(fan, axis=1)[:, None] == np.sort(tris[around], axis=1)[None]).all(axis=2).any():
+                continue  # a triangle the surface has back to back: a pocket of zero volume
+            fillings.append((removed, fan))
+    return fillings
+
+
+def drop_unused_nodes(points: np.ndarray, tris: np.ndarray, *per_node: np.ndarray):
+    """(points, tris, *per_node) without the nodes no triangle uses, renumbered."""
+    used = np.unique(tris)
+    remap = np.full(len(points), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return (points[used], remap[tris], *(a[used] for a in per_node))
+
+
 def plane_flags(points: np.ndarray, box) -> np.ndarray:
     """(n, 3) bool: coordinate a is exactly on a box plane k * L_a (set so by construction)."""
     L = np.asarray(box, dtype=float)

@@ -13,7 +13,7 @@ from jaxmesh._intersect import intersecting_pairs
 from jaxmesh._quality import cell_quality, min_angles
 from jaxmesh._surface import (SurfaceConfig, as_size_fn, enclosed_volume, extract, flip_plane_chords, folded,
                               mesh_inclusion, project, refuse_nodes_off_the_level_set, release_touching,
-                              revert_around_defects, unfold)
+                              remove_fold_nodes, revert_around_defects, unfold)
 from jaxmesh._surface_ops import (collapse_edges, cut_plane, flip_edges, half_edges, plane_chords, plane_flags, refine,
                                   straddling, touching_plane_nodes)
 from jaxmesh.geometry._microstructure import Microstructure
@@ -130,6 +130,55 @@ def test_a_chord_on_the_box_plane_beside_a_trace_is_flipped_away():
     assert len(np.unique(directed, axis=0)) == len(directed)  # still consistently oriented
     # a flip whose triangles would fold is not made
     assert np.array_equal(flip_plane_chords(p, t, on_plane, lambda x: -phi(x)), t)
+
+
+def _rim(points, tris):
+    """The border edges of a patch as pairs of coordinates (node ids change when nodes go)."""
+    return {tuple(sorted(map(tuple, points[list(e)].tolist()))) for e in _boundary_edges(tris)}
+
+
+# two patches of inclusion 1 of the sweep's plain-box `numpy_spheres_s3` (`python benchmarks/sweep_shapes.py
+# OUT --no-periodic --only numpy_spheres_s3`), a lens at most 0.0023 deep that x = 0 cuts; each crossed itself
+# (the surfaces stage stopped there at every sampling). Lengths in thousandths; the level set's gradient there.
+_TENT_OVER_A_CHORD = (  # trace 3, 6, 7 on x = 0, chord 3-7; node 4 (degree 3) beyond it, its triangle (4, 7, 3) folded
+    [[0, 4.3991, 120.2108], [0.0929, 4.2513, 120.5476], [0.1272, 4.2324, 120.8503], [0, 4.647, 121.0454],
+     [0.0575, 4.5296, 121.2134], [0.1036, 4.5167, 121.6648], [0, 4.7029, 121.2184], [0, 4.7678, 121.4123],
+     [0, 4.8569, 121.6656], [0.244, 3.9758, 121.2277], [0.1843, 4.2405, 121.6141]],
+    [[0, 3, 1], [3, 2, 1], [4, 7, 3], [3, 6, 4], [4, 6, 7], [7, 8, 5], [3, 9, 2], [7, 5, 3], [5, 10, 3], [10, 9, 3]],
+    [0.984, 0.33, -0.097])
+_NODE_THROUGH_ITS_RING = (  # node 5 (degree 3) pushed through its ring 3, 4, 6: its three triangles folded
+    [[0, 15.4557, 132.1034], [0, 15.8021, 133.0852], [0.118, 15.1225, 132.2255], [0, 15.6475, 132.5993],
+     [0.0477, 15.5664, 132.7899], [0.0398, 15.5964, 132.8068], [0.0697, 15.5747, 133.0316],
+     [0.1159, 15.579, 133.5872], [0.2426, 14.8791, 132.7139], [0.207, 15.0986, 132.9647],
+     [0.1578, 15.3325, 133.1713], [0.1793, 15.3307, 133.4187]],
+    [[0, 3, 2], [3, 4, 5], [4, 6, 5], [10, 9, 6], [4, 1, 6], [4, 3, 1], [1, 7, 6], [7, 11, 6], [6, 9, 3], [5, 6, 3],
+     [2, 3, 8], [3, 9, 8], [11, 10, 6]],
+    [1.234, 0.4, -0.132])
+
+
+@pytest.mark.parametrize("patch, folds", [(_TENT_OVER_A_CHORD, [2]), (_NODE_THROUGH_ITS_RING, [1, 2, 9])],
+                         ids=["tent over a chord", "node through its ring"])
+def test_a_node_folded_beside_a_shallow_cut_is_removed(patch, folds):
+    p, t, gradient = np.array(patch[0]) * 1e-3, np.array(patch[1]), np.array(patch[2])
+    centre = p.mean(axis=0)
+
+    def phi(x):
+        return (x - centre) @ gradient
+
+    on_plane = plane_flags(p, (1.0, 1.0, 1.0))
+    assert np.flatnonzero(folded(p, t, phi)).tolist() == folds
+    assert len(intersecting_pairs(p, t))
+    assert folded(p, flip_plane_chords(p, t, on_plane, phi), phi).any()  # the chord flip does not clear it
+    q, s, q_on_plane = remove_fold_nodes(p, t, on_plane, phi)
+    assert len(q) == len(p) - 1 and len(s) == len(t) - 2  # one node and two triangles go
+    assert not folded(q, s, phi).any() and not len(intersecting_pairs(q, s))
+    assert _rim(q, s) == _rim(p, t)  # the patch's border, traces included, stays
+    assert np.array_equal(q_on_plane, plane_flags(q, (1.0, 1.0, 1.0)))
+    directed = np.concatenate([s[:, [0, 1]], s[:, [1, 2]], s[:, [2, 0]]])
+    assert len(np.unique(directed, axis=0)) == len(directed)  # still consistently oriented
+    assert all(len(x) == 3 for x in map(set, s.tolist()))
+    same = remove_fold_nodes(q, s, q_on_plane, phi)  # nothing folded: nothing changes
+    assert np.array_equal(same[0], q) and np.array_equal(same[1], s)
 
 
 def test_unfold_removes_a_fold_and_keeps_nodes_on_the_level_set(sphere):
