@@ -521,26 +521,41 @@ def improve_topology(points: np.ndarray, cells: np.ndarray, protected: np.ndarra
 
 
 # ----------------------------------------------------------------------------- Steiner points
-def _cavity(points, cells, dead, fkeys, fowner, protected, seed, x):
-    """Bowyer-Watson cavity of x grown from tet seed across faces that are not protected: tets whose
-    circumsphere holds x. Returns the tet ids, or None if it meets a tet changed in this pass."""
-    n = len(points)
-    cav, todo, seen = [seed], [seed], {seed}
-    while todo:
-        keys = triangle_keys(cells[todo.pop()][_FACES], n)
-        for key in keys[~in_sorted(keys, protected)]:
-            lo, hi = np.searchsorted(fkeys, key), np.searchsorted(fkeys, key, side="right")
-            for nb in (int(v) for v in fowner[lo:hi]):
-                if nb in seen:
-                    continue
-                seen.add(nb)
-                c = _circumcentres_p(points[cells[nb]][None])[0]
-                if np.sum((x - c) ** 2) < np.sum((points[cells[nb][0]] - c) ** 2) * (1 - 1e-12):
-                    if dead[nb]:
-                        return None
-                    cav.append(nb)
-                    todo.append(nb)
-    return np.array(cav)
+def _neighbours(cells: np.ndarray, protected: np.ndarray, n: int) -> np.ndarray:
+    """(m, 4) the tet across face k of each tet, -1 where that face is a surface triangle (its key in
+    the sorted `protected`) or on the mesh's boundary."""
+    keys = triangle_keys(cells[:, _FACES].reshape(-1, 3), n)
+    order = np.argsort(keys, kind="stable")
+    sorted_keys = keys[order]
+    pair = np.flatnonzero(sorted_keys[1:] == sorted_keys[:-1])
+    across = np.full(len(keys), -1, np.int64)
+    a, b = order[pair], order[pair + 1]
+    across[a], across[b] = b // 4, a // 4
+    across[in_sorted(keys, protected)] = -1
+    return across.reshape(-1, 4)
+
+
+def _cavity(across, centres, radius2, dead, seed, x, member):
+    """Bowyer-Watson cavity of x grown from tet seed across faces that are not protected (`_neighbours`):
+    tets whose circumsphere (centres, squared radii) holds x. Returns the tet ids, or None if it meets
+    a tet changed in this pass. Grown a layer at a time: near small features the cavities of
+    circumcentres hold hundreds of tets, where one Python step per tet cost most of the sliver stage.
+    member: (m,) False scratch flags, left False."""
+    cav = layer = np.array([seed])
+    member[seed] = True
+    try:
+        while len(layer):
+            nb = np.unique(across[layer].ravel())
+            nb = nb[nb >= 0]
+            nb = nb[~member[nb]]
+            nb = nb[np.sum((x - centres[nb]) ** 2, axis=1) < radius2[nb] * (1 - 1e-12)]
+            if dead[nb].any():
+                return None
+            member[nb] = True
+            cav, layer = np.concatenate([cav, nb]), nb
+        return cav
+    finally:
+        member[cav] = False
 
 
 def _fill_cavity(points, cells, cav, x, protected):
@@ -578,22 +593,20 @@ def insert_steiner(points: np.ndarray, cells: np.ndarray, protected: np.ndarray,
     n = len(points)
     cells = np.asarray(cells, dtype=np.int64)
     protected = np.unique(np.asarray(protected, dtype=np.int64))  # sorted: `in_sorted`
-    fkeys, fowner = _sorted_keys(cells[:, _FACES], n)
-    dead = np.zeros(len(cells), bool)
+    across = _neighbours(cells, protected, n)
+    centres = _circumcentres_p(points[cells])
+    radius2 = np.sum((points[cells[:, 0]] - centres) ** 2, axis=1)
+    dead, member = np.zeros(len(cells), bool), np.zeros(len(cells), bool)
     new, added = [], []
     for t in (int(v) for v in bad):
         if dead[t]:
             continue
-        seeds = [t]
-        for key in triangle_keys(cells[t][_FACES], n):
-            if not in_sorted(key, protected):
-                lo, hi = np.searchsorted(fkeys, key), np.searchsorted(fkeys, key, side="right")
-                seeds += [int(s) for s in fowner[lo:hi] if s != t]
+        seeds = [t] + [int(s) for s in across[t] if s >= 0]
         best = None
         for s in seeds:
             p = points[cells[s]]
-            for x in (_circumcentres_p(p[None])[0], p.mean(axis=0)):
-                cav = _cavity(points, cells, dead, fkeys, fowner, protected, t, x)
+            for x in (centres[s], p.mean(axis=0)):
+                cav = _cavity(across, centres, radius2, dead, t, x, member)
                 star = None if cav is None else _fill_cavity(points, cells, cav, x, protected)
                 if star is None:
                     continue

@@ -7,8 +7,11 @@ from scipy.spatial import Delaunay
 
 from jaxmesh._quality import cell_quality, signed_volumes
 from jaxmesh._slivers import (
-    _polygon_triangulations,
+    _cavity,
+    _circumcentres_p,
     _edges,
+    _neighbours,
+    _polygon_triangulations,
     colour_classes,
     improve_topology,
     insert_steiner,
@@ -138,3 +141,35 @@ def test_insert_steiner_splits_slivers_and_respects_protected_faces():
     faces = cells[bad][:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3)
     p3, c3, added3 = insert_steiner(pts, cells, np.unique(triangle_keys(faces, len(pts))), bad)
     assert not len(added3) and np.array_equal(c3, cells) and len(p3) == len(pts)
+
+
+def test_a_steiner_cavity_is_the_connected_set_of_tets_whose_circumsphere_holds_the_point():
+    pts, cells = _random_delaunay(k=60, seed=4)
+    n = len(pts)
+    rng = np.random.default_rng(1)
+    protected = np.unique(triangle_keys(cells[rng.choice(len(cells), 15, replace=False)][:, [1, 2, 3]], n))
+    across = _neighbours(cells, protected, n)
+    centres = _circumcentres_p(pts[cells])
+    radius2 = np.sum((pts[cells[:, 0]] - centres) ** 2, axis=1)
+    face_keys = triangle_keys(cells[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), n).reshape(-1, 4)
+    member = np.zeros(len(cells), bool)
+    for seed in range(0, len(cells), 7):
+        x = centres[across[seed][across[seed] >= 0][0]] if (across[seed] >= 0).any() else pts[cells[seed]].mean(0)
+        holds = np.sum((x - centres) ** 2, axis=1) < radius2 * (1 - 1e-12)
+        # the reference: a flood fill over shared faces that are not protected
+        reach, todo = {seed}, [seed]
+        while todo:
+            t = todo.pop()
+            for key in face_keys[t]:
+                if np.isin(key, protected):
+                    continue
+                for nb in np.flatnonzero((face_keys == key).any(axis=1)):
+                    if nb not in reach and holds[nb]:
+                        reach.add(int(nb))
+                        todo.append(int(nb))
+        dead = np.zeros(len(cells), bool)
+        assert sorted(_cavity(across, centres, radius2, dead, seed, x, member).tolist()) == sorted(reach)
+        assert not member.any()  # the scratch flags are left clear
+        if len(reach) > 1:
+            dead[max(reach - {seed})] = True
+            assert _cavity(across, centres, radius2, dead, seed, x, member) is None and not member.any()
