@@ -388,10 +388,10 @@ def flip_plane_chords(points, tris, on_plane, phi_fn) -> np.ndarray:
     return tris
 
 
-def remove_fold_nodes(points, tris, on_plane, phi_fn, rounds: int = 3):
+def remove_fold_nodes(points, tris, on_plane, phi_fn, box, rounds: int = 3):
     """Remove the free nodes of folded triangles, filling each hole (`hole_fillings`: the node's star,
     or the star and one triangle beside it) with the fan of largest smallest angle in which no
-    triangle folds or lies in a box plane. Seen beside shallow box cuts, where no resampling helped:
+    triangle folds, lies in a box plane or straddles one (the cut is done). Seen beside shallow box cuts, where no resampling helped:
     a degree-3 node pushed through its ring, and one tenting over a chord on the plane whose flip
     would fold (the surface crossed itself at both). Returns (points, tris, on_plane)."""
     for _ in range(rounds):
@@ -407,7 +407,8 @@ def remove_fold_nodes(points, tris, on_plane, phi_fn, rounds: int = 3):
             if not fillings:
                 continue  # its folds went with an earlier node's
             new = np.vstack([fan for _, fan in fillings])
-            ok = ~(folded(points, new, phi_fn) | in_one_box_plane(points, on_plane, new))
+            ok = ~(folded(points, new, phi_fn) | in_one_box_plane(points, on_plane, new)
+                   | straddling(points, new, box))
             angle = min_angles(points, new)
             parts = np.split(np.arange(len(new)), np.cumsum([len(fan) for _, fan in fillings])[:-1])
             scores = [angle[part].min() if ok[part].all() else -1.0 for part in parts]
@@ -762,7 +763,7 @@ def mesh_inclusion(inclusion, h_fn, box, config: SurfaceConfig = SurfaceConfig()
             pts, tris, on_plane = cut_by_box(pts, tris, on_plane, phi_fn, box, h_fn,
                                              dataclasses.replace(config, snap_fraction=0.0))
         tris = flip_plane_chords(pts, tris, on_plane, phi_fn)
-        pts, tris, on_plane = remove_fold_nodes(pts, tris, on_plane, phi_fn)
+        pts, tris, on_plane = remove_fold_nodes(pts, tris, on_plane, phi_fn, box)
     if periodic and capped:
         pts, tris, on_plane = _periodic_traces(pts, tris, on_plane, phi_fn, box, capped, inclusion.id, config)
     if periodic:

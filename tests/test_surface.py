@@ -169,7 +169,7 @@ def test_a_node_folded_beside_a_shallow_cut_is_removed(patch, folds):
     assert np.flatnonzero(folded(p, t, phi)).tolist() == folds
     assert len(intersecting_pairs(p, t))
     assert folded(p, flip_plane_chords(p, t, on_plane, phi), phi).any()  # the chord flip does not clear it
-    q, s, q_on_plane = remove_fold_nodes(p, t, on_plane, phi)
+    q, s, q_on_plane = remove_fold_nodes(p, t, on_plane, phi, (1.0, 1.0, 1.0))
     assert len(q) == len(p) - 1 and len(s) == len(t) - 2  # one node and two triangles go
     assert not folded(q, s, phi).any() and not len(intersecting_pairs(q, s))
     assert _rim(q, s) == _rim(p, t)  # the patch's border, traces included, stays
@@ -177,7 +177,7 @@ def test_a_node_folded_beside_a_shallow_cut_is_removed(patch, folds):
     directed = np.concatenate([s[:, [0, 1]], s[:, [1, 2]], s[:, [2, 0]]])
     assert len(np.unique(directed, axis=0)) == len(directed)  # still consistently oriented
     assert all(len(x) == 3 for x in map(set, s.tolist()))
-    same = remove_fold_nodes(q, s, q_on_plane, phi)  # nothing folded: nothing changes
+    same = remove_fold_nodes(q, s, q_on_plane, phi, (1.0, 1.0, 1.0))  # nothing folded: nothing changes
     assert np.array_equal(same[0], q) and np.array_equal(same[1], s)
 
 
