@@ -355,7 +355,8 @@ def test_a_cap_whose_surface_folds_beside_its_trace_meshes_valid(monkeypatch):
     uniform h = 0.05: the default sampling leaves a node tenting over a chord of the trace, its triangle
     folded against the level set; the pocket under it holds no Delaunay tetrahedron and the volume
     recovery diverged. The chord is flipped after the cut (`flip_plane_chords`); without that flip the
-    fold stays (a folded inclusion is then sampled again, tests/test_faces.py)."""
+    tenting node is removed (`remove_fold_nodes`); without both the fold stays (a folded inclusion is
+    then sampled again, tests/test_faces.py)."""
     import jaxmesh._surface as surface
 
     n = 48
@@ -370,6 +371,8 @@ def test_a_cap_whose_surface_folds_beside_its_trace_meshes_valid(monkeypatch):
     assert cap_surface()["folds"] == 0
     with monkeypatch.context() as patch:
         patch.setattr(surface, "flip_plane_chords", lambda points, tris, on_plane, phi_fn: tris)
+        assert cap_surface()["folds"] == 0  # removing the tenting node clears it as well
+        patch.setattr(surface, "remove_fold_nodes", lambda points, tris, on_plane, phi_fn, box: (points, tris, on_plane))
         assert cap_surface()["folds"] == 1
     mesh = mesh_rve(ms, MeshConfig(h=0.05, periodic=False))
     _check_plain_box(mesh, ms)
