@@ -391,9 +391,10 @@ def flip_plane_chords(points, tris, on_plane, phi_fn) -> np.ndarray:
 def remove_fold_nodes(points, tris, on_plane, phi_fn, box, rounds: int = 3):
     """Remove the free nodes of folded triangles, filling each hole (`hole_fillings`: the node's star,
     or the star and one triangle beside it) with the fan of largest smallest angle in which no
-    triangle folds, lies in a box plane or straddles one (the cut is done). Seen beside shallow box cuts, where no resampling helped:
-    a degree-3 node pushed through its ring, and one tenting over a chord on the plane whose flip
-    would fold (the surface crossed itself at both). Returns (points, tris, on_plane)."""
+    triangle folds, lies in a box plane or straddles one (the cut is done). Seen beside shallow box
+    cuts, where no resampling helped: a degree-3 node pushed through its ring, and one tenting over
+    a chord on the plane whose flip would fold (the surface crossed itself at both).
+    Returns (points, tris, on_plane)."""
     for _ in range(rounds):
         bad = folded(points, tris, phi_fn)
         if not bad.any():

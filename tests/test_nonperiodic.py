@@ -372,7 +372,7 @@ def test_a_cap_whose_surface_folds_beside_its_trace_meshes_valid(monkeypatch):
     with monkeypatch.context() as patch:
         patch.setattr(surface, "flip_plane_chords", lambda points, tris, on_plane, phi_fn: tris)
         assert cap_surface()["folds"] == 0  # removing the tenting node clears it as well
-        patch.setattr(surface, "remove_fold_nodes", lambda points, tris, on_plane, phi_fn, box: (points, tris, on_plane))
+        patch.setattr(surface, "remove_fold_nodes", lambda points, tris, on_plane, *_: (points, tris, on_plane))
         assert cap_surface()["folds"] == 1
     mesh = mesh_rve(ms, MeshConfig(h=0.05, periodic=False))
     _check_plain_box(mesh, ms)
