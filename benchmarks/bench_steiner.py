@@ -18,9 +18,9 @@ import argparse
 import datetime
 import os
 import platform
-import time
 
 import numpy as np
+from bench_intersect import timed  # run as a script: benchmarks/ is on the path
 from scipy.spatial import Delaunay
 
 import jaxmesh._slivers as slivers
@@ -56,12 +56,6 @@ def graded_mesh(fine: int, seed: int = 0):
     negative = signed_volumes(points, cells) < 0
     cells[negative, :2] = cells[negative, 1::-1]
     return points, cells
-
-
-def timed(fn, *args):
-    t = time.perf_counter()
-    out = fn(*args)
-    return out, time.perf_counter() - t
 
 
 def main():
