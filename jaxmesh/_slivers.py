@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._mesh import facet_table
 from ._quality import TET_EDGES, cross3, dihedral_angles
 from ._volume_recover import in_sorted, triangle_keys
 
@@ -524,15 +525,13 @@ def improve_topology(points: np.ndarray, cells: np.ndarray, protected: np.ndarra
 def _neighbours(cells: np.ndarray, protected: np.ndarray, n: int) -> np.ndarray:
     """(m, 4) the tet across face k of each tet, -1 where that face is a surface triangle (its key in
     the sorted `protected`) or on the mesh's boundary."""
-    keys = triangle_keys(cells[:, _FACES].reshape(-1, 3), n)
-    order = np.argsort(keys, kind="stable")
-    sorted_keys = keys[order]
-    pair = np.flatnonzero(sorted_keys[1:] == sorted_keys[:-1])
-    across = np.full(len(keys), -1, np.int64)
-    a, b = order[pair], order[pair + 1]
-    across[a], across[b] = b // 4, a // 4
-    across[in_sorted(keys, protected)] = -1
-    return across.reshape(-1, 4)
+    table = facet_table(cells, n)
+    two, owners = table.pairs()
+    open_ = ~in_sorted(triangle_keys(table.facets[two], n), protected)
+    ends = np.full((len(table.counts), 2), -1, np.int64)
+    ends[two[open_]] = owners[open_]
+    ends = ends[table.cell_facet]  # (m, 4, 2): the owners of each tet's face k (cell_facet: opposite vertex k)
+    return np.where(ends[..., 0] == np.arange(len(cells))[:, None], ends[..., 1], ends[..., 0])
 
 
 def _cavity(across, centres, radius2, dead, seed, x, member):
