@@ -116,9 +116,31 @@ def phase_volume(points, cells, selected) -> jax.Array:
     return jnp.sum(_edges_and_measures(points, np.asarray(cells)[np.asarray(selected, dtype=bool)])[1])
 
 
+def _traced_cell_conductivity(mesh: Mesh, conductivity, by: str):
+    """`_homogenize._cell_conductivity` for values that may be JAX tracers (jax.grad by a conductivity).
+
+    Concrete values take the NumPy path and its checks. Otherwise each value is replaced by its slot in
+    the flattened values and the same function resolves ids, keys and shapes, so one set of rules
+    applies; traced values cannot be checked for sign.
+    """
+    from ._homogenize import _cell_conductivity
+
+    leaves, treedef = jax.tree.flatten(conductivity)
+    if not any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
+        return _cell_conductivity(mesh, conductivity, by)
+    sizes = [int(np.size(leaf)) for leaf in leaves]
+    starts = np.cumsum([0] + sizes)
+    slots = [np.arange(a, b, dtype=float).reshape(np.shape(leaf)) + 1.0
+             for a, b, leaf in zip(starts[:-1], starts[1:], leaves)]
+    cell_slot = _cell_conductivity(mesh, jax.tree.unflatten(treedef, slots), by).astype(np.int64) - 1
+    values = jnp.concatenate([jnp.ravel(jnp.asarray(leaf, dtype=float)) for leaf in leaves])
+    return values[cell_slot]
+
+
 def effective_conductivity(mesh: Mesh, points, conductivity, *, by: str = "inclusion_id", rtol: float = 1e-10,
                            max_steps: int | None = None) -> jax.Array:
-    """`homogenize_conductivity`'s P1 periodic cell problems in JAX, differentiable in the points.
+    """`homogenize_conductivity`'s P1 periodic cell problems in JAX, differentiable in the points and
+    in the conductivities.
 
     The same discretisation (one unknown per class of periodic nodes, one class pinned), solved by
     lineax's conjugate gradients with a Jacobi preconditioner and differentiated through the linear
@@ -129,7 +151,8 @@ def effective_conductivity(mesh: Mesh, points, conductivity, *, by: str = "inclu
         mesh: a periodic `Mesh` (its cells, labels and periodic pairs; its own points only set the CG's
             absolute tolerance and are checked for flat cells).
         points: (n, d) node positions, e.g. `move_interface_nodes(mesh, phi_fn, params)`.
-        conductivity, by: as `homogenize_conductivity` (one positive value per id).
+        conductivity, by: as `homogenize_conductivity` (one positive value per id); the values may be
+            traced (jax.grad with respect to them; then their sign is not checked).
         rtol, max_steps: the CG tolerance and step limit (None: 10 n).
     Returns:
         (d, d) effective conductivity tensor.
@@ -138,14 +161,15 @@ def effective_conductivity(mesh: Mesh, points, conductivity, *, by: str = "inclu
         >>> k = lambda r: effective_conductivity(mesh, move_interface_nodes(mesh, phi, r, reference=r0),
         ...                                      {0: 1.0, 1: 10.0}, by="phase")[0, 0]
         >>> jax.grad(k)(r0)
+        >>> jax.grad(lambda k1: effective_conductivity(mesh, mesh.points, {0: 1.0, 1: k1}, by="phase")[0, 0])(10.0)
     """
-    from ._homogenize import _cell_conductivity, _p1_gradients, _periodic_classes
+    from ._homogenize import _p1_gradients, _periodic_classes
 
     if not isinstance(mesh, Mesh):
         raise ValueError(f"expected a jaxmesh Mesh, got {type(mesh).__name__}; hint: mesh_rve(...) returns one")
     classes, n_classes = _periodic_classes(mesh)
     d = mesh.dim
-    k = _cell_conductivity(mesh, conductivity, by)
+    k = _traced_cell_conductivity(mesh, conductivity, by)
     measure, grads = _measures_and_gradients(points, mesh.cells)  # grads (m, d+1, d)
     weight = jnp.asarray(k) * measure
     dtype = weight.dtype
@@ -170,9 +194,15 @@ def effective_conductivity(mesh: Mesh, points, conductivity, *, by: str = "inclu
     # lineax's CG scales the residual entrywise by atol + rtol |load|, and most loads are 0 (nodes off the
     # interfaces): atol from the loads at the mesh's own points, a concrete number under jit and grad
     grads0, measure0 = _p1_gradients(np.asarray(mesh.points, float), np.asarray(mesh.cells))  # refuses flat cells
-    loads0 = (k * measure0)[:, None, None] * grads0
-    load_scale = max(float(np.abs(np.bincount(classes[mesh.cells].ravel(), loads0[..., j].ravel())).max())
-                     for j in range(d))
+    if isinstance(k, np.ndarray):
+        loads0 = (k * measure0)[:, None, None] * grads0
+        load_scale = max(float(np.abs(np.bincount(classes[mesh.cells].ravel(), loads0[..., j].ravel())).max())
+                         for j in range(d))
+    else:  # traced conductivities: the same scale as a JAX scalar, no derivative through it
+        loads0 = jax.lax.stop_gradient(k * measure0)[:, None, None] * grads0
+        load_scale = jnp.max(jnp.abs(jnp.stack([jax.ops.segment_sum(loads0[..., j].ravel(),
+                                                                    classes[mesh.cells].ravel(), n_classes)
+                                                for j in range(d)])))
     solver = lx.CG(rtol=rtol, atol=rtol * load_scale, max_steps=max_steps or 10 * n_classes)
     total = []
     for j in range(d):

@@ -79,6 +79,31 @@ def test_effective_conductivity_and_its_derivative_by_the_radius(cut_sphere):
     assert grad > 0 and grad == pytest.approx(fd, rel=1e-6)
 
 
+def test_effective_conductivity_derivative_by_the_phase_conductivities(cut_sphere):
+    """k_eff is homogeneous of degree one in the conductivities, so k . grad(k_eff) = k_eff (Euler); the
+    derivative by the inclusions' conductivity equals central differences, under jit too, and the same
+    ids resolve traced values as concrete ones (a missing id is refused, a scalar is k_eff = k I)."""
+    mesh, _ = cut_sphere
+    ks = jnp.array([1.0, 10.0])
+
+    def trace(ks):
+        return jnp.trace(effective_conductivity(mesh, mesh.points, {0: ks[0], 1: ks[1]}, by="phase"))
+
+    grad = np.asarray(jax.grad(trace)(ks))
+    assert np.all(grad > 0)
+    assert float(grad @ np.asarray(ks)) == pytest.approx(float(trace(ks)), rel=1e-9)
+    eps = 1e-5
+    fd = float(trace(ks + jnp.array([0.0, eps])) - trace(ks - jnp.array([0.0, eps]))) / (2 * eps)
+    assert grad[1] == pytest.approx(fd, rel=1e-6)
+    np.testing.assert_allclose(np.asarray(jax.jit(jax.grad(trace))(ks)), grad, rtol=1e-10)
+    by_array = jax.grad(lambda ks: jnp.trace(effective_conductivity(mesh, mesh.points, ks, by="phase")))(ks)
+    np.testing.assert_allclose(np.asarray(by_array), grad, rtol=1e-10)
+    scalar = jax.grad(lambda k: effective_conductivity(mesh, mesh.points, k, by="phase")[2, 2])(3.0)
+    assert float(scalar) == pytest.approx(1.0, rel=1e-9)
+    with pytest.raises(ValueError, match=r"no conductivity for phase \[1\]"):
+        jax.grad(lambda k0: effective_conductivity(mesh, mesh.points, {0: k0}, by="phase")[0, 0])(1.0)
+
+
 def test_gradient_with_respect_to_the_grid_values():
     """A mesh of a sampled level set of two spheres 1.5 grid steps apart, and the grid's global cubic
     B-spline: with reference= the mesh's values the nodes follow the B-spline's level through them (the
