@@ -220,17 +220,22 @@ def hole_fillings(tris: np.ndarray, node: int) -> list[tuple[np.ndarray, np.ndar
         return []
     star, ring = found
     holes = [(star, ring)]
+    near = np.flatnonzero(np.isin(tris, ring).any(axis=1))  # every triangle looked at below, apexes' added
+    local = tris[near]
     for i, (a, b) in enumerate(zip(ring, ring[1:] + ring[:1])):
-        beyond = np.flatnonzero((tris == a).any(axis=1) & (tris == b).any(axis=1) & ~(tris == node).any(axis=1))
+        beyond = near[(local == a).any(axis=1) & (local == b).any(axis=1) & ~(local == node).any(axis=1)]
         if len(beyond) != 1:
             continue  # a border edge of an open surface
         apex = int(np.setdiff1d(tris[beyond[0]], (a, b))[0])
         if apex not in ring:
             holes.append((np.append(star, beyond), ring[: i + 1] + [apex] + ring[i + 1:]))
+    if len(holes) > 1:
+        near = np.flatnonzero(np.isin(tris, sorted({v for _, polygon in holes for v in polygon})).any(axis=1))
+        local = tris[near]
     fillings = []
     for removed, polygon in holes:
         k = len(polygon)
-        around = np.flatnonzero(np.isin(tris, polygon).any(axis=1))
+        around = near[np.isin(local, polygon).any(axis=1)]
         around = around[~np.isin(around, removed)]
         for j in range(k):
             fan = np.array([(polygon[j], polygon[(j + i) % k], polygon[(j + i + 1) % k]) for i in range(1, k - 1)])
