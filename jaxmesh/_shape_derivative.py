@@ -10,7 +10,7 @@ map is for gradients and small changes: remesh after a large one.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import jax
 import jax.numpy as jnp
@@ -121,20 +121,37 @@ def _traced_cell_conductivity(mesh: Mesh, conductivity, by: str):
 
     Concrete values take the NumPy path and its checks. Otherwise each value is replaced by its slot in
     the flattened values and the same function resolves ids, keys and shapes, so one set of rules
-    applies; traced values cannot be checked for sign.
+    applies; the concrete values are checked as usual, the traced ones cannot be checked for sign.
     """
     from ._homogenize import _cell_conductivity
 
-    leaves, treedef = jax.tree.flatten(conductivity)
-    if not any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
+    if isinstance(conductivity, Mapping):  # its keys are checked below, not sorted by jax.tree
+        keys = list(conductivity)
+        leaves = [conductivity[key] for key in keys]
+        rebuild = lambda values: dict(zip(keys, values))  # noqa: E731
+    else:
+        leaves, treedef = jax.tree.flatten(conductivity)
+        rebuild = lambda values: jax.tree.unflatten(treedef, values)  # noqa: E731
+    traced = [isinstance(leaf, jax.core.Tracer) for leaf in leaves]
+    if not any(traced):
         return _cell_conductivity(mesh, conductivity, by)
+    # the concrete values get the usual checks; a traced one stands in as ones of its shape
+    _cell_conductivity(mesh, rebuild([np.ones(np.shape(leaf)) if t else leaf for leaf, t in zip(leaves, traced)]), by)
     sizes = [int(np.size(leaf)) for leaf in leaves]
     starts = np.cumsum([0] + sizes)
     slots = [np.arange(a, b, dtype=float).reshape(np.shape(leaf)) + 1.0
              for a, b, leaf in zip(starts[:-1], starts[1:], leaves)]
-    cell_slot = _cell_conductivity(mesh, jax.tree.unflatten(treedef, slots), by).astype(np.int64) - 1
-    values = jnp.concatenate([jnp.ravel(jnp.asarray(leaf, dtype=float)) for leaf in leaves])
-    return values[cell_slot]
+    cell_slot = _cell_conductivity(mesh, rebuild(slots), by).astype(np.int64) - 1
+    return jnp.concatenate([_slot_values(leaf, t) for leaf, t in zip(leaves, traced)])[cell_slot]
+
+
+def _slot_values(leaf, traced: bool):
+    if traced:
+        return jnp.ravel(leaf).astype(float)
+    try:
+        return jnp.asarray(np.ravel(np.asarray(leaf, dtype=float)))
+    except (TypeError, ValueError):  # not a number: the value of an id absent from the mesh (checked above)
+        return jnp.zeros(np.size(leaf))
 
 
 def effective_conductivity(mesh: Mesh, points, conductivity, *, by: str = "inclusion_id", rtol: float = 1e-10,

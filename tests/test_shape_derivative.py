@@ -102,6 +102,8 @@ def test_effective_conductivity_derivative_by_the_phase_conductivities(cut_spher
     assert float(scalar) == pytest.approx(1.0, rel=1e-9)
     with pytest.raises(ValueError, match=r"no conductivity for phase \[1\]"):
         jax.grad(lambda k0: effective_conductivity(mesh, mesh.points, {0: k0}, by="phase")[0, 0])(1.0)
+    with pytest.raises(ValueError, match="keys must be integer ids"):
+        jax.grad(lambda k0: effective_conductivity(mesh, mesh.points, {0: k0, "1": 10.0}, by="phase")[0, 0])(1.0)
 
 
 def test_gradient_with_respect_to_the_grid_values():
