@@ -675,7 +675,7 @@ def edge_gap_sources(microstructure, reach_steps: float = 2.0, samples_per_step:
                 continue
             line = np.zeros((len(t), 3))
             line[:, axis], line[:, across] = t, corner
-            for index, sel, vals in ms._evaluate_near(line, reach_steps * step):
+            for index, sel, vals in ms.evaluate_near(line, reach_steps * step):
                 v = np.full(len(t), np.inf)
                 v[sel] = vals
                 before, after = np.r_[np.inf, v[:-1]], np.r_[v[1:], np.inf]

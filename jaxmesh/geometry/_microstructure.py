@@ -379,7 +379,7 @@ class Microstructure:
         pts = check_points(points, self.dim, "Microstructure.phi")
         h = max(self.spacing)
         out = np.full(len(pts), np.inf)
-        for _, sel, vals in self._evaluate_near(pts, _PHI_MARGIN * h):
+        for _, sel, vals in self.evaluate_near(pts, _PHI_MARGIN * h):
             out[sel] = np.minimum(out[sel], vals)
         # window-based phi_fn only continue distance-like beyond their core: take the grid if smaller
         far = out > _CORE_PAD * h if self._groups()[0] else ~np.isfinite(out)
@@ -398,7 +398,7 @@ class Microstructure:
         """Inclusion id containing each point (m, d) -> (m,) int64; 0 = matrix."""
         pts = check_points(points, self.dim, "Microstructure.label")
         ids, best = np.zeros(len(pts), np.int64), np.zeros(len(pts))
-        for i, sel, vals in self._evaluate_near(pts, max(self.spacing)):
+        for i, sel, vals in self.evaluate_near(pts, max(self.spacing)):
             win = vals < best[sel]
             ids[sel[win]], best[sel[win]] = i + 1, vals[win]
         return ids
@@ -431,10 +431,12 @@ class Microstructure:
             self._stacked = (stacks, gathers, others)
         return self._stacked
 
-    def _evaluate_near(self, pts: np.ndarray, margin: float, chunk: int = 2**16):
+    def evaluate_near(self, pts, margin: float, chunk: int = 2**16):
         """Yield (inclusion index, selected point indices, phi values) for every inclusion at the
-        points within margin of its bounds; equal windows, and analytic inclusions of one kind, are
-        evaluated in one compiled call."""
+        points (m, d) within margin of its (periodic) bounds: each inclusion's own level set where it
+        is meaningful; equal windows, and analytic inclusions of one kind, are evaluated in one
+        compiled call."""
+        pts = check_points(pts, self.dim, "Microstructure.evaluate_near")
         near = self._near_bounds(pts, margin)
         stacks, gathers, others = self._groups()
         for func, params, box, wbox, members in stacks:
