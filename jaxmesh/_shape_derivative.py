@@ -209,7 +209,8 @@ def effective_conductivity(mesh: Mesh, points, conductivity, *, by: str = "inclu
     diagonal = jax.lax.stop_gradient(free * to_classes(weight[:, None] * jnp.sum(grads**2, axis=2)) + (1.0 - free))
     preconditioner = lx.TaggedLinearOperator(lx.DiagonalLinearOperator(1.0 / diagonal), lx.positive_semidefinite_tag)
     # lineax's CG scales the residual entrywise by atol + rtol |load|, and most loads are 0 (nodes off the
-    # interfaces): atol from the loads at the mesh's own points, a concrete number under jit and grad
+    # interfaces): atol from the loads at the mesh's own points, a concrete number under jit and grad by the
+    # points (a JAX scalar without derivative when the conductivities are traced)
     grads0, measure0 = _p1_gradients(np.asarray(mesh.points, float), np.asarray(mesh.cells))  # refuses flat cells
     if isinstance(k, np.ndarray):
         loads0 = (k * measure0)[:, None, None] * grads0
