@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
@@ -121,7 +122,9 @@ def _traced_cell_conductivity(mesh: Mesh, conductivity, by: str):
 
     Concrete values take the NumPy path and its checks. Otherwise each value is replaced by its slot in
     the flattened values and the same function resolves ids, keys and shapes, so one set of rules
-    applies; the concrete values are checked as usual, the traced ones cannot be checked for sign.
+    applies. Every value gets the usual checks where it is known: concrete ones, and tracers of an eager
+    jax.grad, which carry theirs; under jit or vmap a used value that is not positive and finite
+    raises equinox's runtime error with the same message.
     """
     from ._homogenize import _cell_conductivity
 
@@ -135,14 +138,30 @@ def _traced_cell_conductivity(mesh: Mesh, conductivity, by: str):
     traced = [isinstance(leaf, jax.core.Tracer) for leaf in leaves]
     if not any(traced):
         return _cell_conductivity(mesh, conductivity, by)
-    # the concrete values get the usual checks; a traced one stands in as ones of its shape
-    _cell_conductivity(mesh, rebuild([np.ones(np.shape(leaf)) if t else leaf for leaf, t in zip(leaves, traced)]), by)
+    known = [_known_value(leaf) if t else leaf for leaf, t in zip(leaves, traced)]
+    # the values known get the usual checks; an abstract one stands in as ones of its shape
+    _cell_conductivity(mesh, rebuild([np.ones(np.shape(leaf)) if v is None else v for leaf, v in zip(leaves, known)]), by)
     sizes = [int(np.size(leaf)) for leaf in leaves]
     starts = np.cumsum([0] + sizes)
     slots = [np.arange(a, b, dtype=float).reshape(np.shape(leaf)) + 1.0
              for a, b, leaf in zip(starts[:-1], starts[1:], leaves)]
     cell_slot = _cell_conductivity(mesh, rebuild(slots), by).astype(np.int64) - 1
-    return jnp.concatenate([_slot_values(leaf, t) for leaf, t in zip(leaves, traced)])[cell_slot]
+    values = jnp.concatenate([_slot_values(leaf, t) for leaf, t in zip(leaves, traced)])
+    if any(v is None for v in known):
+        used = jnp.asarray(np.unique(cell_slot))
+        values = eqx.error_if(values, ~jnp.all(jnp.isfinite(values[used]) & (values[used] > 0)),
+                              f"conductivity: every {by}'s value must be positive and finite, got one that is not "
+                              "(a traced value, checked at run time)")
+    return values[cell_slot]
+
+
+def _known_value(tracer):
+    """The value an eager tracer (jax.grad outside jit) carries, or None (jit, vmap, older jax)."""
+    try:
+        value = tracer.to_concrete_value()
+    except AttributeError:
+        return None
+    return None if value is None else np.asarray(value)
 
 
 def _slot_values(leaf, traced: bool):
@@ -169,7 +188,8 @@ def effective_conductivity(mesh: Mesh, points, conductivity, *, by: str = "inclu
             absolute tolerance and are checked for flat cells).
         points: (n, d) node positions, e.g. `move_interface_nodes(mesh, phi_fn, params)`.
         conductivity, by: as `homogenize_conductivity` (one positive value per id); the values may be
-            traced (jax.grad with respect to them; then their sign is not checked).
+            traced (jax.grad with respect to them; checked like concrete ones in an eager jax.grad, at run
+            time under jit).
         rtol, max_steps: the CG tolerance and step limit (None: 10 n).
     Returns:
         (d, d) effective conductivity tensor.

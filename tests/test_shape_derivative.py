@@ -82,7 +82,8 @@ def test_effective_conductivity_and_its_derivative_by_the_radius(cut_sphere):
 def test_effective_conductivity_derivative_by_the_phase_conductivities(cut_sphere):
     """k_eff is homogeneous of degree one in the conductivities, so k . grad(k_eff) = k_eff (Euler); the
     derivative by the inclusions' conductivity equals central differences, under jit too, and the same
-    ids resolve traced values as concrete ones (a missing id is refused, a scalar is k_eff = k I)."""
+    ids resolve traced values as concrete ones (a missing id is refused, a scalar is k_eff = k I), and a
+    traced value that is not positive is refused."""
     mesh, _ = cut_sphere
     ks = jnp.array([1.0, 10.0])
 
@@ -104,6 +105,11 @@ def test_effective_conductivity_derivative_by_the_phase_conductivities(cut_spher
         jax.grad(lambda k0: effective_conductivity(mesh, mesh.points, {0: k0}, by="phase")[0, 0])(1.0)
     with pytest.raises(ValueError, match="keys must be integer ids"):
         jax.grad(lambda k0: effective_conductivity(mesh, mesh.points, {0: k0, "1": 10.0}, by="phase")[0, 0])(1.0)
+    # a traced value is checked for sign as a concrete one: eagerly by its value, under jit at run time
+    with pytest.raises(ValueError, match="conductivity of phase 1 must be positive and finite, got -10.0"):
+        jax.grad(trace)(jnp.array([1.0, -10.0]))
+    with pytest.raises(RuntimeError, match="every phase's value must be positive and finite"):
+        jax.jit(jax.grad(trace))(jnp.array([1.0, float("nan")]))
 
 
 def test_gradient_with_respect_to_the_grid_values():
