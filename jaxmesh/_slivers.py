@@ -34,10 +34,14 @@ def min_dihedral(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
 
 def _stars(cells: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Vertex -> cells (tets or triangles), CSR (cell ids sorted by vertex, offsets (n + 1,))."""
+    corners, offsets = _star_corners(cells, n)
+    return corners // cells.shape[1], offsets
+
+
+def _star_corners(cells: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """`_stars` as flat corner ids (cell * k + the vertex's local index), offsets (n + 1,)."""
     flat = cells.ravel()
-    order = np.argsort(flat, kind="stable")
-    offsets = np.concatenate([[0], np.cumsum(np.bincount(flat, minlength=n))])
-    return order // cells.shape[1], offsets
+    return np.argsort(flat, kind="stable"), np.concatenate([[0], np.cumsum(np.bincount(flat, minlength=n))])
 
 
 # ----------------------------------------------------------------------------- optimisation-based smoothing
@@ -157,7 +161,8 @@ def smooth_vertices(points: np.ndarray, cells: np.ndarray, free: np.ndarray, swe
     points = np.array(points, dtype=float, copy=True)
     cells = np.asarray(cells, dtype=np.int64)
     n = len(points)
-    by, off = _stars(cells, n)
+    corners, off = _star_corners(cells, n)
+    by = corners // 4
     edges = _edges(cells)
     both = np.concatenate([edges, edges[:, ::-1]])
     neighbours = both[np.argsort(both[:, 0], kind="stable"), 1]  # vertex -> neighbours, CSR like _stars
@@ -170,7 +175,7 @@ def smooth_vertices(points: np.ndarray, cells: np.ndarray, free: np.ndarray, swe
         before = points.copy() if slide is not None else None
         accepted = 0
         for verts in colour_classes(colour_edges, movable & (deg > 0), seed + sweep):
-            accepted += _smooth_class(points, cells, by, off, neighbours, nb_off, verts, slide)
+            accepted += _smooth_class(points, cells, corners, off, neighbours, nb_off, verts, slide)
         if slide is not None:
             accepted -= slide.project(points, before, cells, by, off)
         moves += accepted
@@ -205,31 +210,33 @@ TAU, W = 0.4, 0.2
 WORST_STEPS, MEAN_STEPS = (0.3, 0.03), (0.1, 0.03, 0.01)
 
 
-def _joint_stars(by, off, neighbours, nb_off, points, verts, slide):
-    """Star rows of verts (tet ids, owner index into verts sorted, the vertex that moves in each tet,
-    the shift that brings the tet into the owner's frame or None) and neighbour positions (with
-    owner). A sliding 0-face node's star joins its periodic copy's, shifted by -L e_a."""
-    rows, owner = _star_rows(by, off, verts)
+def _joint_stars(corners, off, neighbours, nb_off, points, verts, slide):
+    """Star rows of verts (tet ids, owner index into verts sorted, the local index of the vertex that
+    moves in each tet, the shift that brings the tet into the owner's frame or None) and neighbour
+    positions (with owner). A sliding 0-face node's star joins its periodic copy's, shifted by -L e_a.
+    corners, off: `_star_corners` of the tets."""
+    star, owner = _star_rows(corners, off, verts)
     nbr, nb_owner = _star_rows(neighbours, nb_off, verts)
-    mover, nb_points = verts[owner], points[nbr]
+    nb_points = points[nbr]
     has = np.zeros(0, np.int64) if slide is None else np.flatnonzero(slide.partner[verts] >= 0)
     if not len(has):
-        return rows, owner, mover, None, nb_points, nb_owner
+        return star // 4, owner, star % 4, None, nb_points, nb_owner
     copies = slide.partner[verts[has]]
-    crow, cown = _star_rows(by, off, copies)
+    cstar, cown = _star_rows(corners, off, copies)
     cnbr, cnb_own = _star_rows(neighbours, nb_off, copies)
-    shift = np.concatenate([np.zeros((len(rows), 3)), slide.shift[verts[has[cown]]]])
-    rows, owner, mover = np.concatenate([rows, crow]), np.concatenate([owner, has[cown]]), np.concatenate([mover, copies[cown]])
+    shift = np.concatenate([np.zeros((len(star), 3)), slide.shift[verts[has[cown]]]])
+    star, owner = np.concatenate([star, cstar]), np.concatenate([owner, has[cown]])
     order = np.argsort(owner, kind="stable")  # `_star_eval` reduces over runs of one owner
     nb_points = np.concatenate([nb_points, points[cnbr] - slide.shift[verts[has[cnb_own]]]])
     nb_owner = np.concatenate([nb_owner, has[cnb_own]])
-    return rows[order], owner[order], mover[order], shift[order], nb_points, nb_owner
+    star = star[order]
+    return star // 4, owner[order], star % 4, shift[order], nb_points, nb_owner
 
 
-def _smooth_class(points, cells, by, off, neighbours, nb_off, verts, slide=None) -> int:
+def _smooth_class(points, cells, corners, off, neighbours, nb_off, verts, slide=None) -> int:
     k = len(verts)
-    rows, owner, mover, shift, nb_points, nb_owner = _joint_stars(by, off, neighbours, nb_off, points, verts, slide)
-    local = np.argmax(cells[rows] == mover[:, None], axis=1)
+    rows, owner, local, shift, nb_points, nb_owner = _joint_stars(corners, off, neighbours, nb_off, points, verts,
+                                                                  slide)
     x0 = points[verts].copy()
     p0 = points[cells[rows]] if shift is None else points[cells[rows]] - shift[:, None, :]
     fixed = np.ascontiguousarray(np.transpose(p0[np.arange(len(rows))[:, None], _FIXED_AFTER[local]], (1, 2, 0)))
