@@ -37,6 +37,7 @@ from ._triangulate2d import (
     triangle_angles,
 )
 from ._truss import make_constraints, relax
+from ._truss._topology import bucket_capacity
 from .geometry._grid import interpolate_linear
 
 
@@ -78,12 +79,12 @@ class FaceSize(eqx.Module):
     cap: jax.Array  # (nb, nc) node-centred periodic samples of the cap over the face
     plane: jax.Array  # the face's x_axis (0, or L on a non-periodic box)
     box2: tuple = eqx.field(static=True)
-    axis: int = eqx.field(static=True)
+    frame: jax.Array  # (3, 3) unit rows e_axis, e_b, e_c: traced, so the faces share a compilation
 
     def __call__(self, uv):
-        b, c = (self.axis + 1) % 3, (self.axis + 2) % 3
-        p = jnp.full((uv.shape[0], 3), self.plane, uv.dtype).at[:, b].set(uv[:, 0]).at[:, c].set(uv[:, 1])
-        h = jnp.reshape(self.h_fn(p), uv.shape[:1])
+        # exact: each coordinate is one term times 1 plus zeros
+        p = self.plane * self.frame[0] + uv[:, :1] * self.frame[1] + uv[:, 1:] * self.frame[2]
+        h = jnp.reshape(self.h_fn(p.astype(uv.dtype)), uv.shape[:1])
         return jnp.minimum(h, interpolate_linear(self.cap.astype(uv.dtype), self.box2, uv))
 
 
@@ -109,16 +110,18 @@ def feature_spacing(points: np.ndarray, segments: np.ndarray, box) -> np.ndarray
 
 
 def _face_size(h_fn, axis: int, plane: float, uv: np.ndarray, spacing: np.ndarray, grad: float, box2) -> FaceSize:
-    """FaceSize with the cap min_j (spacing_j + grad |x - x_j|) sampled at half the finest spacing
-    (at most 1024 samples per side); the k nearest nodes stand in for all of them."""
+    """FaceSize with the cap min_j (spacing_j + grad |x - x_j|) sampled at half the finest spacing or
+    finer (a power of two from 8 to 1024 samples per side); the k nearest nodes stand in for all of them."""
     keep = np.isfinite(spacing)
     uv, spacing = uv[keep], spacing[keep]
     box2 = tuple(float(v) for v in box2)
     finest = float(spacing.min()) if len(spacing) else max(box2)
-    n = [int(np.clip(np.ceil(2 * L / finest), 8, 1024)) for L in box2]
+    # a power of two per side: the faces' size functions then share compilations
+    n = [1 << int(np.clip(np.ceil(np.log2(2 * L / finest)), 3, 10)) for L in box2]
     grid = np.stack(np.meshgrid(*[np.arange(k) * L / k for k, L in zip(n, box2)], indexing="ij"), -1).reshape(-1, 2)
     cap = _spacing_cap(cKDTree(uv), spacing, grad, grid).reshape(n) if len(uv) else np.full(n, np.inf)
-    return FaceSize(h_fn, jnp.asarray(np.minimum(cap, 1e6)), jnp.asarray(float(plane)), box2, axis)
+    frame = np.eye(3)[[axis, (axis + 1) % 3, (axis + 2) % 3]]
+    return FaceSize(h_fn, jnp.asarray(np.minimum(cap, 1e6)), jnp.asarray(float(plane)), box2, jnp.asarray(frame))
 
 
 def _spacing_cap(tree: cKDTree, spacing: np.ndarray, grad: float, points: np.ndarray) -> np.ndarray:
@@ -291,14 +294,17 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
     nf = len(uv_fixed)
     tri_fn = lambda p: constrained_delaunay(p, seg)  # noqa: E731
     if len(lat):
-        cons = make_constraints(len(uv), 2, fixed=np.arange(nf))
+        # padded with fixed copies of a node to a capacity bucket: faces of similar size share a compilation
+        n, cap = len(uv), bucket_capacity(len(uv))
+        cons = make_constraints(cap, 2, fixed=np.concatenate([np.arange(nf), np.arange(n, cap)]))
+        padded = np.vstack([uv, np.repeat(uv[:1], cap - n, axis=0)])
         truss = config.face_truss
         for cfg in (truss, dataclasses.replace(truss, dt=truss.dt * truss.dt_retry_factor)):
             try:
-                res = relax(uv, tri_fn, h2, cons, config=cfg, box=box2)
+                res = relax(padded, lambda p: tri_fn(p[:n]), h2, cons, config=cfg, box=box2)
             except MeshingError:  # a free node stepped onto a trace: back off, finally keep the lattice
                 continue
-            uv = np.array(res.points)
+            uv = np.array(res.points)[:n]
             uv[:nf] = uv_fixed
             break
     try:

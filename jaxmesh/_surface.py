@@ -157,8 +157,7 @@ def evaluate_size(h_fn, points: np.ndarray) -> np.ndarray:
     points = np.asarray(points, float)
     if len(points) == 0:
         return np.zeros(0)
-    p, k = _pad(points.reshape(len(points), -1))
-    return np.asarray(_apply_size(h_fn, jnp.asarray(p)))[:k]
+    return _in_buckets(lambda p: _apply_size(h_fn, p), points.reshape(len(points), -1))
 
 
 @eqx.filter_jit
@@ -176,10 +175,24 @@ def _newton(phi_fn, pts, locked, n_iter: int):
     return p, phi, g
 
 
-def _pad(a: np.ndarray) -> tuple[np.ndarray, int]:
-    k = len(a)
-    size = max(64, 1 << (k - 1).bit_length())
-    return np.concatenate([a, np.repeat(a[-1:], size - k, axis=0)]), k
+# Row counts of the calls of pointwise kernels (`_in_buckets`): few, so that a cold run compiles each
+# kernel at most three times per callable (each compile of `_newton` costs seconds; the padded rows little).
+_BUCKETS = (64, 1024, 16384)
+
+
+def _in_buckets(kernel, *arrays: np.ndarray):
+    """kernel(*arrays) for a pointwise JAX kernel on NumPy arrays of k rows: padded (the last row
+    repeated) to the smallest of _BUCKETS rows that holds them, in chunks of the largest. Returns
+    the kernel's outputs (one array or a tuple) as NumPy arrays of k rows."""
+    k = len(arrays[0])
+    size = next((b for b in _BUCKETS if b >= k), _BUCKETS[-1])
+    outs = []
+    for start in range(0, k, size):
+        rows = [a[start:start + size] for a in arrays]
+        n = len(rows[0])
+        padded = [jnp.asarray(np.concatenate([r, np.repeat(r[-1:], size - n, axis=0)])) for r in rows]
+        outs.append(jax.tree.map(lambda x, n=n: np.asarray(x)[:n], kernel(*padded)))
+    return jax.tree.map(lambda *parts: np.concatenate(parts), *outs)
 
 
 def project(phi_fn, points: np.ndarray, locked: np.ndarray, n_iter: int = 8):
@@ -192,11 +205,9 @@ def project(phi_fn, points: np.ndarray, locked: np.ndarray, n_iter: int = 8):
     """
     if len(points) == 0:
         return points.copy(), np.zeros(0), np.zeros((0, 3))
-    p, k = _pad(np.asarray(points, float))
-    lk, _ = _pad(np.asarray(locked, bool))
-    q, phi, g = _newton(phi_fn, jnp.asarray(p), jnp.asarray(lk), int(n_iter))
-    q = np.where(lk, p, np.array(q))  # locked coordinates stay bit-identical
-    return q[:k].copy(), np.array(phi)[:k], np.array(g)[:k]
+    p, lk = np.asarray(points, float), np.asarray(locked, bool)
+    q, phi, g = _in_buckets(lambda a, b: _newton(phi_fn, a, b, int(n_iter)), p, lk)
+    return np.where(lk, p, q), phi, g  # locked coordinates stay bit-identical
 
 
 def refuse_nodes_off_the_level_set(points: np.ndarray, phi_fn, box, inclusion_id: int, step: float,

@@ -391,7 +391,9 @@ def _attempt(p0, cons, triangulate_fn, h_fn, h_params, phi_fn, phi_params, confi
     simplices = _triangulate(triangulate_fn, np.asarray(p), n)
     edges = edges_from_simplices(simplices, n)
     while True:
-        bar_cap = bucket_capacity(len(edges), current=bar_cap)
+        # at least 3 bars per node (a triangulated surface has about 3): the capacity then follows the
+        # node count, so calls of one node capacity share a compilation
+        bar_cap = bucket_capacity(max(len(edges), 3 * n), current=bar_cap)
         bars_np, mask_np = pad_rows(edges, bar_cap)
         bars, bar_mask = jnp.asarray(bars_np), jnp.asarray(mask_np)
         use_bv = config.ball_vertex_stiffness > 0 and simplices.shape[1] == 4 and d == 3
