@@ -4,6 +4,7 @@ h = r/6 (volume, level set, quality); two spheres one grid step apart stay two a
 import warnings
 from collections import Counter
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
@@ -11,8 +12,8 @@ from scipy.spatial import ConvexHull
 from jaxmesh._errors import MeshingError
 from jaxmesh._intersect import intersecting_pairs
 from jaxmesh._quality import cell_quality, min_angles
-from jaxmesh._surface import (SurfaceConfig, as_size_fn, enclosed_volume, extract, flip_plane_chords, folded,
-                              mesh_inclusion, project, refuse_nodes_off_the_level_set, release_touching,
+from jaxmesh._surface import (SurfaceConfig, as_size_fn, enclosed_volume, evaluate_size, extract, flip_plane_chords,
+                              folded, mesh_inclusion, project, refuse_nodes_off_the_level_set, release_touching,
                               remove_fold_nodes, revert_around_defects, unfold)
 from jaxmesh._surface_ops import (collapse_edges, cut_plane, flip_edges, half_edges, plane_chords, plane_flags, refine,
                                   straddling, touching_plane_nodes)
@@ -40,6 +41,23 @@ def test_marching_cubes_surface_closed_outward_on_level_set(sphere):
     assert _closed(t)
     assert enclosed_volume(p, t) == pytest.approx(4 / 3 * np.pi * 0.2**3, rel=0.05)
     assert np.abs(np.linalg.norm(p - 0.5, axis=1) - 0.2).max() < 1e-12
+
+
+@pytest.mark.parametrize("rows", [1, 64, 65, 1500, 16384 + 300])
+def test_pointwise_kernels_in_row_buckets_equal_a_direct_call(rows):
+    """project and evaluate_size pad their rows to a few buckets (chunks of the largest): every row
+    gets what an unpadded call gives it, and locked coordinates stay bit-identical."""
+    phi = sphere_sdf(np.array([0.5, 0.5, 0.5]), 0.2)
+    rng = np.random.default_rng(rows)
+    points = 0.5 + 0.3 * rng.standard_normal((rows, 3))
+    locked = rng.random((rows, 3)) < 0.2
+    q, values, grads = project(phi, points, locked, 4)
+    assert q.shape == (rows, 3) and values.shape == (rows,) and grads.shape == (rows, 3)
+    assert np.array_equal(q[locked], points[locked])
+    direct = np.array([project(phi, points[i:i + 1], locked[i:i + 1], 4)[0][0] for i in range(0, rows, 997)])
+    np.testing.assert_allclose(q[::997], direct, rtol=0, atol=1e-14)
+    size = evaluate_size(lambda x: 0.01 + jnp.sum(x * x, axis=-1), points)
+    np.testing.assert_allclose(size, 0.01 + np.sum(points**2, axis=1), rtol=1e-14)
 
 
 def test_refine_conforming(sphere):
