@@ -52,6 +52,8 @@ def run(checkout: Path, input_path: str, mesh_args: list[str]) -> dict:
             kernels[name][phase] += sec
             kernels[name]["count"] += phase == "compile"
     summary = [line for line in proc.stdout.splitlines() if line.startswith("[jaxmesh]") or "quality:" in line]
+    if proc.returncode:
+        summary += proc.stderr.strip().splitlines()[-3:]
     return {"wall": wall, "rc": proc.returncode, "kernels": kernels, "summary": summary}
 
 
@@ -75,9 +77,9 @@ def main() -> None:
     parser.add_argument("input")
     parser.add_argument("--checkout", action="append", default=[], help="another checkout to run as well")
     parser.add_argument("--top", type=int, default=10, help="kernels listed per run")
-    parser.add_argument("mesh_args", nargs=argparse.REMAINDER, help="after --: arguments of jaxmesh mesh")
-    args = parser.parse_args()
-    mesh_args = args.mesh_args[1:] if args.mesh_args[:1] == ["--"] else args.mesh_args
+    argv = sys.argv[1:]
+    cut = argv.index("--") if "--" in argv else len(argv)
+    args, mesh_args = parser.parse_args(argv[:cut]), argv[cut + 1:]  # after --: jaxmesh mesh's own
     input_path = str(Path(args.input).resolve())
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, capture_output=True, text=True).stdout
     print(f"# cold-run compilations, {datetime.date.today()}, {platform.machine()}, {os.cpu_count()} CPUs; "
