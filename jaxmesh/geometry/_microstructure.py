@@ -44,12 +44,26 @@ class Inclusion:
     description: dict = field(default_factory=dict)
 
 
-def _pad_to_bucket(data):
-    """Pad window data at its far end to shapes rounded up to 8 (16 above 64): inclusions of
-    similar size then share every compilation. Safe: interpolation only reads the core of the
-    window and its spline neighbours, which the padding never reaches."""
-    target = [-(-n // (8 if n <= 64 else 16)) * (8 if n <= 64 else 16) for n in data.shape]
-    return jnp.pad(data, [(0, t - n) for t, n in zip(target, data.shape)])
+# Bytes that the windows of one microstructure may take when all are padded to one shape.
+_SHARED_SHAPE_BYTES = 256 * 2**20
+
+
+def _bucket_shape(shape) -> tuple[int, ...]:
+    """Window shape rounded up to 8 (16 above 64) per axis."""
+    return tuple(-(-n // (8 if n <= 64 else 16)) * (8 if n <= 64 else 16) for n in shape)
+
+
+def _pad_windows(datas: list) -> list:
+    """Pad window data at its far end to one shape for all inclusions (the largest bucket per axis),
+    or, when that would take more than _SHARED_SHAPE_BYTES, each to its own bucket (`_bucket_shape`):
+    inclusions of one shape share every compilation (a cold run compiles a grid kernel once per shape,
+    seconds each). Safe: interpolation only reads the core of the window and its spline neighbours,
+    which the padding never reaches."""
+    buckets = [_bucket_shape(d.shape) for d in datas]
+    shared = tuple(np.max(buckets, axis=0)) if datas else ()
+    if datas and len(datas) * np.prod(shared) * datas[0].dtype.itemsize <= _SHARED_SHAPE_BYTES:
+        buckets = [shared] * len(datas)
+    return [jnp.pad(d, [(0, t - n) for t, n in zip(target, d.shape)]) for d, target in zip(datas, buckets)]
 
 
 def _window_phi(data, origin, center, half, box, window_box, points, *, cubic, periodic):
@@ -719,7 +733,7 @@ class Microstructure:
             if len(ids):
                 raise ValueError(comp.close_pairs_message(ids, gaps, comp.node_places(nodes, shape), spacing,
                                                           min_gap, where))
-        inclusions = []
+        inclusions, datas, pending = [], [], []  # pending: what each inclusion gets once its data are padded
         for c, (win, W, own, desc, stat) in enumerate(zip(windows, fields, owns, descriptions, stats), 1):
             if not periodic:  # the level set goes on beyond the box as it meets it, no crease
                 W = comp.extrapolate_beyond_domain(W, win.origin, shape)
@@ -733,11 +747,12 @@ class Microstructure:
             else:  # samples in every grid plane along an axis: it meets its own image (the mesher refuses it)
                 upper = np.where(lengths[c - 1] == shape, lower + np.asarray(box, float), upper)
             centre, half = zip(*(comp.core_geometry(win, k, spacing, W.shape) for k in range(len(shape))))
-            data = _pad_to_bucket(bspline_coefficients(W) if order == "cubic" else jnp.asarray(W))
-            args = [jnp.asarray(a, dtype=data.dtype) for a in
-                    (win.origin * spacing, centre, half, box, np.asarray(data.shape) * spacing)]
+            datas.append(bspline_coefficients(W) if order == "cubic" else jnp.asarray(W))
+            pending.append((c, lower, upper, dict(desc, n_samples=stat[0], thickness=stat[1]),
+                            (win.origin * spacing, centre, half)))
+        for (c, lower, upper, desc, frame), data in zip(pending, _pad_windows(datas)):
+            args = [jnp.asarray(a, dtype=data.dtype) for a in (*frame, box, np.asarray(data.shape) * spacing)]
             phi_fn = jax.tree_util.Partial(_KERNELS[(order == "cubic", bool(periodic))], data, *args)
-            desc = dict(desc, n_samples=stat[0], thickness=stat[1])
             inclusions.append(Inclusion(c, phi_fn, lower, upper, None, desc))
         return cls(box, periodic, inclusions, shape, dn1, dn2, nearest, reach)
 
