@@ -110,14 +110,13 @@ def feature_spacing(points: np.ndarray, segments: np.ndarray, box) -> np.ndarray
 
 
 def _face_size(h_fn, axis: int, plane: float, uv: np.ndarray, spacing: np.ndarray, grad: float, box2) -> FaceSize:
-    """FaceSize with the cap min_j (spacing_j + grad |x - x_j|) sampled at half the finest spacing or
-    finer (a power of two from 8 to 1024 samples per side); the k nearest nodes stand in for all of them."""
+    """FaceSize with the cap min_j (spacing_j + grad |x - x_j|) sampled at half the finest spacing
+    (at most 1024 samples per side); the k nearest nodes stand in for all of them."""
     keep = np.isfinite(spacing)
     uv, spacing = uv[keep], spacing[keep]
     box2 = tuple(float(v) for v in box2)
     finest = float(spacing.min()) if len(spacing) else max(box2)
-    # a power of two per side: the faces' size functions then share compilations
-    n = [1 << int(np.clip(np.ceil(np.log2(2 * L / finest)), 3, 10)) for L in box2]
+    n = [int(np.clip(np.ceil(2 * L / finest), 8, 1024)) for L in box2]
     grid = np.stack(np.meshgrid(*[np.arange(k) * L / k for k, L in zip(n, box2)], indexing="ij"), -1).reshape(-1, 2)
     cap = _spacing_cap(cKDTree(uv), spacing, grad, grid).reshape(n) if len(uv) else np.full(n, np.inf)
     frame = np.eye(3)[[axis, (axis + 1) % 3, (axis + 2) % 3]]
