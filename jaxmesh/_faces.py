@@ -37,7 +37,7 @@ from ._triangulate2d import (
     triangle_angles,
 )
 from ._truss import make_constraints, relax
-from ._truss._topology import bucket_capacity
+from ._truss._topology import pad_nodes_to_bucket
 from .geometry._grid import interpolate_linear
 
 
@@ -294,9 +294,9 @@ def _mesh_face(axis, reg: _Registry, iface_tris: np.ndarray, edge_vals, ms, h_fn
     tri_fn = lambda p: constrained_delaunay(p, seg)  # noqa: E731
     if len(lat):
         # padded with fixed copies of a node to a capacity bucket: faces of similar size share a compilation
-        n, cap = len(uv), bucket_capacity(len(uv))
+        n = len(uv)
+        padded, cap = pad_nodes_to_bucket(uv)
         cons = make_constraints(cap, 2, fixed=np.concatenate([np.arange(nf), np.arange(n, cap)]))
-        padded = np.vstack([uv, np.repeat(uv[:1], cap - n, axis=0)])
         truss = config.face_truss
         for cfg in (truss, dataclasses.replace(truss, dt=truss.dt * truss.dt_retry_factor)):
             try:

@@ -42,7 +42,7 @@ from ._surface_ops import (
 )
 from ._truss import TrussConfig, make_constraints, phi_and_grad, relax
 from ._truss._constraints import newton_damping
-from ._truss._topology import bucket_capacity
+from ._truss._topology import pad_nodes_to_bucket
 from .geometry._microstructure import evaluate
 
 
@@ -336,8 +336,7 @@ def _relax(points, tris, on_plane, phi_fn, h_fn, box, truss: TrussConfig, cut: b
     Nodes on one box plane slide along their trace, nodes on two planes are fixed; the result is
     projected onto phi = 0 with newton_steps Newton iterations."""
     n = len(points)
-    cap = bucket_capacity(n)
-    p = np.vstack([points, np.repeat(points[:1], cap - n, axis=0)])
+    p, cap = pad_nodes_to_bucket(points)
     fixed = np.zeros(cap, bool)
     fixed[n:] = True
     fixed[:n] = on_plane.sum(axis=1) >= 2

@@ -105,6 +105,11 @@ def test_bad_files(tmp_path):
         load_input(tmp_path / "c.npy")
     with pytest.raises(ValueError, match="file path"):
         load_input(42)
+    # an integer array is a label image; one with negative values is most likely a level set in whole numbers
+    x = np.arange(16) - 7.5
+    np.save(tmp_path / "int_phi.npy", np.round(np.hypot(*np.meshgrid(x, x, indexing="ij")) - 4).astype(np.int32))
+    with pytest.raises(ValueError, match=r"labels >= 0.*got minimum -3.*phi\.astype\(float\)"):
+        load_input(tmp_path / "int_phi.npy")
 
 
 def test_npz_with_analytic_inclusions_uses_the_generator_hook(tmp_path, monkeypatch):

@@ -14,6 +14,7 @@ __all__ = [
     "edges_from_simplices",
     "bucket_capacity",
     "pad_rows",
+    "pad_nodes_to_bucket",
 ]
 
 
@@ -81,6 +82,17 @@ def bucket_capacity(size: int, *, current: int | None = None, minimum: int = 64)
     while cap < size:
         cap *= 2
     return cap
+
+
+def pad_nodes_to_bucket(points: np.ndarray) -> tuple[np.ndarray, int]:
+    """Nodes (n, d) padded to their capacity bucket with copies of node 0, and that capacity.
+
+    The copies are for the caller to fix (they take no bars): meshes of similar size then share
+    one compilation of the truss kernels.
+    """
+    n = len(points)
+    cap = bucket_capacity(n)
+    return np.vstack([points, np.repeat(points[:1], cap - n, axis=0)]), cap
 
 
 def pad_rows(rows: np.ndarray, capacity: int, *, fill: int = 0, dtype=np.int32):

@@ -732,7 +732,8 @@ def check_field(values, where: str, labels: bool = False) -> np.ndarray:
     if labels:
         if a.dtype.kind == "i" and a.min() < 0:
             raise ValueError(f"{where} expected labels >= 0 (0 = matrix), got minimum {a.min()}. "
-                             "Hint: shift or relabel the image.")
+                             "Hint: shift or relabel the image; a level set (negative inside) in whole numbers is "
+                             "read as one when stored as floats (phi.astype(float)).")
         return a
     a = a.astype(np.float64)
     if not np.isfinite(a).all():
