@@ -275,6 +275,12 @@ _REDISTANCE_HELP = ("level-set inputs: first make the field a first-order signed
                      "field as given, and once more redistanced when a fold or a node stalled off the level set "
                      "stops the run, or any failure when the field is far from a distance (the report's "
                      "metadata.redistance.after_failure keeps the first error); --no-redistance: never")
+_CLOSE_LAYERS_HELP = ("plain-box (--no-periodic) level-set inputs: first close the layers along the box planes "
+                      "thinner than a sixth of a grid step (an interface grazing a plane from inside moves onto "
+                      "it, a sheet of inclusion along it is dropped: the interface moves by at most that much, "
+                      "there only). Default: as given, and once more closed when the volume recovery stops where "
+                      "an interface grazes a box plane (the report's metadata.close_box_layers.after_failure keeps "
+                      "the first error); --no-close-box-layers: never")
 
 
 def _check_mesh_outputs(args: argparse.Namespace) -> None:
@@ -312,7 +318,7 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
     _check_mesh_outputs(args)
     config = MeshConfig(h=args.h, periodic=not args.no_periodic, seed=args.seed, backend=args.backend,
                         max_elements=args.max_elements if args.max_elements > 0 else None, roll=_roll_arg(args.roll),
-                        redistance=args.redistance, **_size_kwargs(args))
+                        redistance=args.redistance, close_box_layers=args.close_box_layers, **_size_kwargs(args))
     mesh = mesh_rve(args.input, config, box=_box_arg(args.box), progress=lambda line: print(line, flush=True))
     validation = mesh.metadata["validation"]
     for name, check in validation["checks"].items():
@@ -371,7 +377,8 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     if args.geometry:
         _read_as_meshed(args, mesh.metadata.get("input_reading", {}))
         ms, _ = _as_microstructure(args.geometry, box=_box_arg(args.box) or tuple(mesh.box), periodic=mesh.periodic,
-                                   roll=_roll_arg(args.roll), redistance=args.redistance)
+                                   roll=_roll_arg(args.roll), redistance=args.redistance,
+                                   close_box_layers=args.close_box_layers)
     report = validate(mesh, ms)
     print(report.summary())
     if ms is not None and not report.ok and set(report.failed) <= _GEOMETRY_CHECKS:
@@ -388,7 +395,8 @@ _GEOMETRY_CHECKS = {"interface", "labels", "connectivity"}  # the checks that re
 
 
 def _read_as_meshed(args: argparse.Namespace, reading: dict) -> None:
-    """Fill --roll / --redistance, where not given, from the input reading the mesh file carries."""
+    """Fill --roll / --redistance / --close-box-layers, where not given, from the input reading the mesh
+    file carries."""
     taken = []
     if args.roll is None and reading.get("roll_samples"):
         args.roll = [str(k) for k in reading["roll_samples"]]
@@ -396,13 +404,17 @@ def _read_as_meshed(args: argparse.Namespace, reading: dict) -> None:
     if not args.redistance and reading.get("redistanced"):
         args.redistance = True
         taken.append("--redistance")
+    if not args.close_box_layers and reading.get("box_layers_closed"):
+        args.close_box_layers = True
+        taken.append("--close-box-layers")
     if taken:
         print(f"    reading the input as the mesh file says it was meshed: {' '.join(taken)}")
 
 
 def _another_reading(mesh, args: argparse.Namespace, ms) -> str:
-    """When a mesh fails only the checks against its input: the options (--redistance, --roll auto) under
-    which the input reads as the mesh follows it, as `jaxmesh mesh` reads it after a failed first try."""
+    """When a mesh fails only the checks against its input: the options (--redistance, --roll auto,
+    --close-box-layers) under which the input reads as the mesh follows it, as `jaxmesh mesh` reads it
+    after a failed first try."""
     from ._pipeline import _as_microstructure
     from ._validate import validate
 
@@ -411,12 +423,15 @@ def _another_reading(mesh, args: argparse.Namespace, ms) -> str:
         options.append(["--redistance"])
     if args.roll is None and ms.can_roll:
         options.append(["--roll", "auto"])
+    if not args.close_box_layers and ms.can_close_box_layers:
+        options.append(["--close-box-layers"])
     if len(options) == 2:
         options.append(options[0] + options[1])
     for flags in options:
         other, _ = _as_microstructure(args.geometry, box=_box_arg(args.box) or tuple(mesh.box), periodic=mesh.periodic,
                                       roll="auto" if "--roll" in flags else _roll_arg(args.roll),
-                                      redistance=args.redistance or "--redistance" in flags)
+                                      redistance=args.redistance or "--redistance" in flags,
+                                      close_box_layers=args.close_box_layers or "--close-box-layers" in flags)
         if validate(mesh, other).ok:
             return (f"valid with {' '.join(flags)}: the input read so is what the mesh follows (jaxmesh mesh "
                     "reads it so after a failed first try; its report's metadata says which)")
@@ -502,6 +517,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "metadata.roll gives the offset. Without --roll, a periodic file input whose meshing fails "
                         "is meshed once more with 'auto' (--roll 0 0 0: never)")
     m.add_argument("--redistance", action=argparse.BooleanOptionalAction, default=None, help=_REDISTANCE_HELP)
+    m.add_argument("--close-box-layers", action=argparse.BooleanOptionalAction, default=None, help=_CLOSE_LAYERS_HELP)
     m.add_argument("--seed", type=int, default=0)
     m.add_argument("--report", default=None, help="JSON report path")
     m.add_argument("--plot", default=None, help="PNG path: mesh coloured by phase + quality histogram")
@@ -518,6 +534,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "what a .vtu, .msh, .xdmf, .inp or .npz written by jaxmesh says)")
     v.add_argument("--redistance", action="store_true",
                    help="the mesh was made with --redistance (default: what the mesh file says, as for --roll)")
+    v.add_argument("--close-box-layers", action="store_true",
+                   help="the mesh was made with --close-box-layers (default: what the mesh file says)")
     v.set_defaults(func=_cmd_validate)
     return parser
 

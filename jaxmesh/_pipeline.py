@@ -92,6 +92,12 @@ class MeshConfig:
             1.5), a level-set input is meshed once more redistanced and
             metadata['redistance']['after_failure'] keeps the first error. False: as given, no
             second try.
+        close_box_layers: plain boxes (periodic=False), level-set inputs: True: first close the layers
+            along the box planes thinner than a sixth of a grid step (`Microstructure.with_box_layers_closed`:
+            an interface grazing a plane from inside moves onto it, a sheet of inclusion along it is
+            dropped; the interface moves by at most that much, there only). None (default): as given;
+            when the volume recovery stops where an interface grazes a box plane, meshed once more
+            closed and metadata['close_box_layers']['after_failure'] keeps the first error. False: never.
     """
 
     iis: float | None = None
@@ -109,6 +115,7 @@ class MeshConfig:
     backend: str = "conforming"
     roll: str | tuple[int, ...] | None = None
     redistance: bool | None = None
+    close_box_layers: bool | None = None
 
     def __post_init__(self):
         for name in ("iis", "nb_el", "curv_alpha", "grad", "h_max", "h", "max_elements"):
@@ -135,6 +142,11 @@ class MeshConfig:
             raise ValueError("MeshConfig.roll needs periodic=True: the faces of a plain box are the domain's")
         if self.redistance is not None and not isinstance(self.redistance, bool):
             raise ValueError(f"MeshConfig.redistance: expected None, True or False, got {self.redistance!r}")
+        if self.close_box_layers is not None and not isinstance(self.close_box_layers, bool):
+            raise ValueError(f"MeshConfig.close_box_layers: expected None, True or False, got {self.close_box_layers!r}")
+        if self.close_box_layers and self.periodic:
+            raise ValueError("MeshConfig.close_box_layers needs periodic=False: a periodic field's box planes are no "
+                             "boundary (roll moves them off the inclusions instead)")
         if self.h_max is not None and self.iis is not None and self.h_max < self.iis:
             raise ValueError(f"MeshConfig.h_max: expected >= iis = {self.iis:g}, got {self.h_max}")
 
@@ -170,7 +182,8 @@ def _check_sizes_against_box(config: MeshConfig, box) -> None:
         )
 
 
-def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redistance: bool = False):
+def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redistance: bool = False,
+                       close_box_layers: bool = False):
     """The Microstructure of source, and the roll applied ({} when none)."""
     from .geometry._microstructure import Microstructure
     from .io._read import load_input
@@ -190,6 +203,8 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redis
             f"expected a Microstructure or an input path (.npy/.npz/.tif), got {type(source).__name__}; "
             "hint: jaxmesh.load_input(path) or Microstructure.from_levelset(phi)"
         )
+    if close_box_layers and ms.can_close_box_layers:  # level sets on a plain box only, as redistance
+        ms = ms.with_box_layers_closed()
     if roll is None:
         return ms, {}
     clear, best = box_plane_clearances(ms)
@@ -225,6 +240,12 @@ def _inside_out_hint(ms) -> str:
         return ""
     return (f"; note: the inclusions fill {fraction:.0%} of the box; jaxmesh takes phi < 0 (labels > 0) inside "
             "them: if your field is negative in the matrix, pass -phi")
+
+
+def _closed_layers_note(ms) -> str:
+    closed = ms.inclusions[0].description.get("box_layers_closed") if ms.inclusions else None
+    return "" if closed is None else (f"; layers along the box planes thinner than a sixth of a step closed "
+                                      f"({closed} box-plane samples changed)")
 
 
 def _parts_note(ms) -> str:
@@ -306,7 +327,8 @@ def _retry_config(source, config: MeshConfig, box, failure: MeshingError) -> tup
     does, for the progress line), or None when no other try can remove the failure. A level set as
     given is redistanced first when the failure is one that redistancing removes or the field is far
     from a distance (its surfaces fold and its recovery stalls where the slope varies); then a
-    failure that depends on the frame is meshed rolled."""
+    plain-box level set whose recovery stopped at a box plane is meshed with its box layers closed,
+    and a failure that depends on the frame is meshed rolled."""
     from .geometry._microstructure import Microstructure
     from .io._read import load_input
 
@@ -319,6 +341,12 @@ def _retry_config(source, config: MeshConfig, box, failure: MeshingError) -> tup
         return dataclasses.replace(config, redistance=True), "redistance", (
             "with the field made a first-order signed distance to its zero set (redistance=True: the same "
             "signs at every sample, the interface moved within its grid cells; validate with --redistance)")
+    if (config.close_box_layers is None and failure.at_box_plane and not config.periodic
+            and source.can_close_box_layers):
+        return dataclasses.replace(config, close_box_layers=True), "close_box_layers", (
+            "with the layers along the box planes thinner than a sixth of a grid step closed (close_box_layers="
+            "True: the interface there moves onto the plane, or a sheet of inclusion along it is dropped; "
+            "validate with --close-box-layers)")
     if failure.frame_dependent and _rolling_helps(source, config):
         return dataclasses.replace(config, roll="auto"), "roll", (
             "with the box planes moved off the inclusions (roll='auto'; the mesh is in the rolled frame, "
@@ -348,7 +376,7 @@ def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
 
     t = time.perf_counter()
     ms, roll = _as_microstructure(source, box=box, periodic=config.periodic, roll=config.roll,
-                                  redistance=bool(config.redistance))
+                                  redistance=bool(config.redistance), close_box_layers=bool(config.close_box_layers))
     config = config.for_box(ms.box)
     if config.backend == "conforming" and ms.periodic != config.periodic:
         raise ValueError(f"MeshConfig.periodic is {config.periodic} but the microstructure has periodic={ms.periodic} "
@@ -360,7 +388,7 @@ def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
               f"nearest inclusion extreme, {roll['clearance_before']:.3g} unrolled)") if roll else ""
     t = stage("input", t, f"{ms.dim}D, {len(ms.inclusions)} inclusions, grid {tuple(ms.grid_shape)}{rolled}"
                           f"{_parts_note(ms)}{_grazing_hint(ms) if config.roll is None else ''}"
-                          f"{_inside_out_hint(ms)}")
+                          f"{_inside_out_hint(ms)}{_closed_layers_note(ms)}")
 
     if ms.dim == 2 and config.backend != "conforming":
         raise ValueError(f"backend {config.backend!r} meshes 3D inputs only; hint: 2D inputs use the default backend")

@@ -252,8 +252,9 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
         history.append(int(miss.sum()))
         info["missing_first"] = history[0]
         if len(history) >= 6 and history[-1] > history[-2] > history[-3] > history[-4] > history[-5]:
+            place, at_plane = _missing_cause(surface, miss)
             raise MeshingError("volume", f"surface recovery diverges (missing triangles per round: {history})"
-                               f"{_missing_place(surface, miss)}", inclusion=_missing_inclusion(surface, miss))
+                               f"{place}", inclusion=_missing_inclusion(surface, miss), at_box_plane=at_plane)
         if not miss.any() and not dinfo["flat_interior"]:
             info["flat_interior"] = 0
             return points, cells, surface, info
@@ -287,14 +288,21 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
             raise MeshingError("volume", f"{int(miss.sum())} surface triangles missing and none of their longest "
                                "edges can be split inside the box (hint: an inclusion crossing a box plane by less "
                                "than the surface resolution was meshed as not crossing it; move it off the plane or "
-                               "across it)", inclusion=_missing_inclusion(surface, miss))
+                               "across it)", inclusion=_missing_inclusion(surface, miss), at_box_plane=True)
+    place, at_plane = _missing_cause(surface, miss)
     raise MeshingError("volume", f"{int(miss.sum())} surface triangles still missing and "
                        f"{dinfo['flat_interior']} flat tets after {config.max_recovery_rounds} recovery rounds"
-                       f"{_missing_place(surface, miss)}", inclusion=_missing_inclusion(surface, miss))
+                       f"{place}", inclusion=_missing_inclusion(surface, miss), at_box_plane=at_plane)
 
 
 def _missing_place(surface: SurfaceMesh, miss: np.ndarray) -> str:
-    """' near x = (...)' and the likely cause, from where most missing triangles gather, for the error message.
+    """The message part of `_missing_cause`."""
+    return _missing_cause(surface, miss)[0]
+
+
+def _missing_cause(surface: SurfaceMesh, miss: np.ndarray) -> tuple[str, bool]:
+    """' near x = (...)' and the likely cause, from where most missing triangles gather, for the error
+    message; and whether that cause is an interface grazing a box plane (beside an edge or not).
 
     Beside a box edge (the second-nearest box plane within ten triangle sizes), or against one box
     plane (the interface nearly tangent to it: the nodes that splits add there come ever closer to the
@@ -303,7 +311,7 @@ def _missing_place(surface: SurfaceMesh, miss: np.ndarray) -> str:
     the plane is the cause however thick that layer is against the triangles.
     """
     if not miss.any():
-        return ""
+        return "", False
     box = np.asarray(surface.box, dtype=float)
     P = surface.points[surface.triangles[miss]]
     centroids = P.mean(axis=1)
@@ -323,16 +331,16 @@ def _missing_place(surface: SurfaceMesh, miss: np.ndarray) -> str:
     if to_plane[second] <= 10.0 * size:
         return (f"{place}, {to_plane[second]:.2g} from a box edge (seen where an interface passes a small fraction "
                 "of a grid step from a box edge: a layer thinner than the input resolves; hint: move the "
-                "inclusion off the edge or across it, sample the field finer, or raise max_recovery_rounds)")
+                "inclusion off the edge or across it, sample the field finer, or raise max_recovery_rounds)"), True
     if layer or to_plane[first] <= size:  # a layer along the plane: its triangles may be far smaller than it is thick
         remedy = ("--roll auto moves the box planes off the inclusions' extremes" if surface.periodic else
                   "a periodic field meshed periodic (with --roll auto) avoids the plane")
         return (f"{place}, {to_plane[first]:.2g} from the box plane {plane}: the interface there is nearly tangent "
                 "to the plane (it grazes it, or a layer thinner than the grid step meets it), and the nodes recovery "
                 "adds come ever closer to the plane; hint: sample or smooth the field so that the interface crosses "
-                f"the plane at an angle there; {remedy}")
+                f"the plane at an angle there; {remedy}"), True
     return (f"{place} (interfaces closer to each other than the surface resolves; hint: sample the field finer or "
-            "raise max_recovery_rounds)")
+            "raise max_recovery_rounds)"), False
 
 
 def _layer_along_plane(P: np.ndarray, centroids: np.ndarray, sides: np.ndarray, box: np.ndarray, centre: np.ndarray,

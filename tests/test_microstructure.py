@@ -775,3 +775,51 @@ def test_rolled_rebuilds_a_grid_microstructure_in_the_shifted_frame():
                                           periodic=False)
     with pytest.raises(ValueError, match="needs a periodic microstructure"):
         plain.rolled((1, 0, 0))
+
+
+def test_close_box_layers_closes_only_layers_thinner_than_the_fraction_along_a_plane():
+    from jaxmesh.geometry._components import close_box_layers
+
+    n, h = 16, 1.0 / 16
+    x = np.arange(n) * h
+    X, Y = np.meshgrid(x, x, indexing="ij")
+    fraction = 1.0 / 6.0
+    # matrix layer 0.05 steps thick along x = 0 (inclusion beyond x = t): the plane sample turns negative
+    thin = 0.05 * h - X
+    out, changed = close_box_layers(thin, fraction)
+    assert changed == n and np.all(out[0] < 0) and np.array_equal(out[1:], thin[1:])
+    assert np.allclose(out[0], -fraction * np.abs(thin[1]))
+    # 0.3 steps thick, or an interface crossing the plane at a right angle: nothing changes
+    for kept in (0.3 * h - X, Y - 0.53):
+        out, changed = close_box_layers(kept, fraction)
+        assert changed == 0 and np.array_equal(out, kept)
+    # a sheet of inclusion 0.05 steps deep along the far plane y = L (the continuation 2 v[n-1] - v[n-2]
+    # there): |v[n-1]| rises, its sign stays, and the continued value on the plane turns positive
+    sheet = (1.0 - 0.05 * h) - Y
+    out, changed = close_box_layers(sheet, fraction)
+    assert changed == n
+    assert np.all(np.sign(out[:, -1]) == np.sign(sheet[:, -1])) and np.all(out[:, -1] > sheet[:, -1])
+    assert np.all(2 * out[:, -1] - out[:, -2] > 0) and np.array_equal(out[:, :-1], sheet[:, :-1])
+
+
+def test_with_box_layers_closed_brings_a_grazing_interface_onto_a_plain_box_plane():
+    n = 24
+    x = np.arange(n) / n
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    axes = np.array([0.32, 0.32, 0.1])
+    u = np.stack([X - 0.5, Y - 0.5, Z - (0.1 + 0.02 / n)], -1) / axes  # flat bottom 0.02 steps above z = 0
+    r = np.linalg.norm(u, axis=-1)
+    phi = (r - 1) * r / np.linalg.norm(u / axes, axis=-1).clip(1e-9)  # about the distance near the surface
+    ms = Microstructure.from_levelset(phi, periodic=False)
+    assert len(ms.inclusions) == 1 and ms.can_close_box_layers and not ms.can_roll
+    assert ms.inclusions[0].lower[2] > 0 and ms.phi(np.array([[0.5, 0.5, 0.0]]))[0] > 0
+    closed = ms.with_box_layers_closed()
+    assert len(closed.inclusions) == 1 and not closed.can_close_box_layers
+    assert closed.inclusions[0].description["box_layers_closed"] > 0
+    assert closed.inclusions[0].lower[2] == 0 and closed.phi(np.array([[0.5, 0.5, 0.0]]))[0] < 0
+    far = np.array([[0.5, 0.5, 0.5], [0.1, 0.2, 0.05]])  # away from the layer the field is the same
+    assert np.allclose(closed.phi(far), ms.phi(far), atol=1e-6)
+    with pytest.raises(ValueError, match="plain box"):
+        Microstructure.from_levelset(phi, periodic=True, close_box_layers=True)
+    ball = np.sqrt((X - 0.5) ** 2 + (Y - 0.5) ** 2 + (Z - 0.5) ** 2) - 0.25
+    assert not Microstructure.from_levelset(ball).can_close_box_layers  # periodic: roll instead

@@ -219,6 +219,34 @@ def edt(mask: np.ndarray, spacing, full=None) -> np.ndarray:
     return dist[tuple(slice(p[0], p[0] + w) for p, w in zip(pad, mask.shape))]
 
 
+def close_box_layers(v: np.ndarray, fraction: float) -> tuple[np.ndarray, int]:
+    """A plain box's samples with the layers along its planes thinner than `fraction` of a grid step
+    closed: where the level set crosses zero between a box plane and the first sample inside, within
+    that fraction of a step of the plane, the value on the plane takes the inner sample's sign (a
+    matrix layer: the inclusion then reaches the plane; a sheet of inclusion: it is dropped), with a
+    crossing moved `fraction` of the way to the next sample beyond the plane. The plane x = 0 holds
+    sample 0; the plane x = L holds the linear continuation 2 v[n-1] - v[n-2]
+    (`extrapolate_beyond_domain`), set by raising |v[n-1]| (its sign stays). The mesher follows no
+    layer thinner than the size function's floor; closing them moves the interface by at most that
+    much, at those places only. Returns (new values, number of box-plane samples changed)."""
+    out = np.array(v, dtype=float, copy=True)
+    changed = 0
+    for a in range(out.ndim):
+        w = np.moveaxis(out, a, 0)  # a view: writes go to out
+        for far in (False, True):
+            inner = w[-1] if far else w[1]
+            plane = 2.0 * w[-1] - w[-2] if far else w[0]
+            crossing = np.abs(plane) / np.maximum(np.abs(plane) + np.abs(inner), np.finfo(float).tiny)
+            close = (np.sign(plane) != np.sign(inner)) & (inner != 0) & (crossing < fraction)
+            target = np.sign(inner) * fraction * np.abs(inner)  # the new value on the plane
+            if far:
+                w[-1] = np.where(close, 0.5 * (target + w[-2]), w[-1])
+            else:
+                w[0] = np.where(close, target, w[0])
+            changed += int(close.sum())
+    return out, changed
+
+
 def first_order_distance(g: np.ndarray, inside: np.ndarray, spacing, periodic: bool) -> np.ndarray:
     """Signed distance-like level set of `inside` (negative there): g over its gradient norm at the
     nodes next to the interface (a first-order distance, clipped to one step), plus the Euclidean

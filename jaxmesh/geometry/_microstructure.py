@@ -46,6 +46,9 @@ class Inclusion:
 
 # Bytes that the windows of one microstructure may take when all are padded to one shape.
 _SHARED_SHAPE_BYTES = 256 * 2**20
+# Layers along a plain box's planes thinner than this (grid steps) are closed on request: the size
+# function sizes no box gap below it (`_sizing.size_sources` clips box gaps at a sixth of a step).
+BOX_LAYER_STEPS = 1.0 / 6.0
 
 
 def _bucket_shape(shape) -> tuple[int, ...]:
@@ -299,6 +302,7 @@ class Microstructure:
         self._stacked = None
         self._rebuild = None  # periodic: samples -> the same Microstructure in the rolled frame
         self._redistance = None  # from_levelset as given: () -> the same field made a first-order distance
+        self._close_box_layers = None  # plain-box from_levelset: () -> the same with its box layers closed
 
     def rolled(self, samples) -> Microstructure:
         """The same periodic microstructure in the frame whose origin is sample samples[a] along each axis a
@@ -338,6 +342,24 @@ class Microstructure:
     def can_redistance(self) -> bool:
         """Whether `redistanced` applies: a from_levelset field not redistanced yet."""
         return self._redistance is not None
+
+    def with_box_layers_closed(self) -> Microstructure:
+        """This plain-box from_levelset microstructure rebuilt with the layers along its box planes that
+        are thinner than BOX_LAYER_STEPS of a grid step closed (`from_levelset(..., close_box_layers=True)`,
+        the other arguments the same): the interface moves by at most that much, at those places only.
+
+        Example:
+            >>> ms = Microstructure.from_levelset(phi, periodic=False).with_box_layers_closed()
+        """
+        if self._close_box_layers is None:
+            raise ValueError("Microstructure.with_box_layers_closed needs a plain-box level set built by "
+                             "from_levelset(periodic=False) without close_box_layers")
+        return self._close_box_layers()
+
+    @property
+    def can_close_box_layers(self) -> bool:
+        """Whether `with_box_layers_closed` applies: a plain-box from_levelset field not closed yet."""
+        return self._close_box_layers is not None
 
     def __repr__(self):
         return (f"Microstructure(dim={self.dim}, box={self.box}, periodic={self.periodic}, "
@@ -520,7 +542,7 @@ class Microstructure:
     @classmethod
     def from_levelset(cls, values, box=None, periodic=True, order="cubic", *, reach=None,
                       check_sizes: bool = True, check_gaps: bool = True, check_necks: bool = True,
-                      redistance: bool = False) -> Microstructure:
+                      redistance: bool = False, close_box_layers: bool = False) -> Microstructure:
         """Inclusions = periodic connected components of {phi < 0} of one global field (on a plain
         box, parts that join in the last cell before a far face x = L are one component).
 
@@ -545,12 +567,19 @@ class Microstructure:
                 elsewhere): the same signs at every node, the interface moved within its grid cells.
                 For fields far from a distance, such as a thresholded random field whose saddles lie
                 close to zero: their nearly flat zero sets fold the surfaces.
+            close_box_layers: plain boxes only: close the layers along the box planes thinner than
+                BOX_LAYER_STEPS of a grid step (`_components.close_box_layers`: an interface that
+                grazes a plane from inside reaches it, a sheet of inclusion along it is dropped),
+                after redistancing. The mesher cannot follow such a layer: its recovery stops there.
 
         Returns:
             The Microstructure; each inclusion's description holds n_samples and thickness (steps),
             neck_steps (the narrowest neck's width) when it has a neck below one step, and the field's
             scale and slope_spread (`gradient_scale`: how far the field is from a distance).
         """
+        if close_box_layers and periodic:
+            raise ValueError("from_levelset: close_box_layers applies to a plain box (periodic=False); a "
+                             "periodic field's box planes are no boundary (roll moves them instead)")
         v = check_field(values, "from_levelset")
         shape = v.shape
         box = check_box(box, shape, "from_levelset")
@@ -586,6 +615,13 @@ class Microstructure:
                     )
         if redistance:
             v = comp.first_order_distance(v, mask, spacing, periodic)
+        closed = 0
+        if close_box_layers:
+            v, closed = comp.close_box_layers(v, BOX_LAYER_STEPS)
+            mask = v < 0
+            if not mask.any():
+                raise ValueError("from_levelset: with the layers along the box planes closed no inclusion is left "
+                                 "(every part was a sheet thinner than the grid resolves); hint: sample finer")
         scale, spread = gradient_scale(v, mask, spacing, periodic)
         scale = scale if abs(scale - 1.0) > 0.25 else 1.0  # distance-like fields are kept as they are
         v = v / scale
@@ -605,7 +641,8 @@ class Microstructure:
             fields.append(comp.levelset_window_field(comp.take(v, idx), own, near_w, c, spacing, win.full, other))
             windows.append(win)
         descriptions = [{"kind": "levelset", "scale": float(scale), "slope_spread": spread,
-                         **({"redistanced": True} if redistance else {})} for _ in range(n)]
+                         **({"redistanced": True} if redistance else {}),
+                         **({"box_layers_closed": closed} if close_box_layers else {})} for _ in range(n)]
         ms = cls._from_windows(box, periodic, order, labels, (starts, lengths), windows, fields, r,
                                descriptions, "from_levelset", check_sizes, check_gaps, check_necks)
         if check_gaps:
@@ -623,7 +660,9 @@ class Microstructure:
         if periodic:
             ms._rebuild = functools.partial(_from_rolled_grid, functools.partial(build, redistance=redistance), grid)
         if not redistance:
-            ms._redistance = functools.partial(build, grid, redistance=True)
+            ms._redistance = functools.partial(build, grid, redistance=True, close_box_layers=close_box_layers)
+        if not periodic and not close_box_layers:
+            ms._close_box_layers = functools.partial(build, grid, redistance=redistance, close_box_layers=True)
         return ms
 
     @classmethod

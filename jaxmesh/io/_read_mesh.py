@@ -27,7 +27,7 @@ def read_mesh(path, box=None, periodic: bool = True):
     Returns:
         Mesh with cell data `inclusion_id` when present (.inp: from its element sets matrix and
         inclusion_K; else all 0); metadata["input_reading"]: how jaxmesh read the input it meshed
-        (roll_samples / roll_offset, redistanced; {} when as given or not written by jaxmesh; .vtk
+        (roll_samples / roll_offset, redistanced, box_layers_closed; {} when as given or not written by jaxmesh; .vtk
         files do not carry it).
     """
     from .._mesh import Mesh, make_periodic_pairs
@@ -88,8 +88,9 @@ def _reading_of(path: Path, field_data: dict) -> dict:
     prefix = INPUT_READING_TAG + "_"
     reading = {k.removeprefix(prefix): np.asarray(v).ravel().tolist() for k, v in field_data.items()
                if k.startswith(prefix)}
-    if "redistanced" in reading:
-        reading["redistanced"] = bool(reading["redistanced"][0])
+    for flag in ("redistanced", "box_layers_closed"):
+        if flag in reading:
+            reading[flag] = bool(reading[flag][0])
     if reading or path.suffix.lower() not in (".msh", ".inp"):
         return reading
     with open(path, "rb") as fh:  # .inp: in the first lines; .msh: the last section

@@ -73,7 +73,8 @@ def _points3(mesh) -> np.ndarray:
 
 def input_reading(metadata: dict) -> dict:
     """How the mesh's input was read, as the files carry it: {"roll_samples", "roll_offset"} when the
-    grid was rolled, {"redistanced": True} when redistanced; {} when read as given. `jaxmesh validate
+    grid was rolled, {"redistanced": True} when redistanced, {"box_layers_closed": True} when a plain
+    box's layers along its planes were closed; {} when read as given. `jaxmesh validate
     --geometry` reads the input the same way (`read_mesh` puts it in metadata["input_reading"])."""
     meta = metadata or {}
     out = {}
@@ -82,6 +83,8 @@ def input_reading(metadata: dict) -> dict:
         out["roll_offset"] = [float(v) for v in meta["roll"]["offset"]]
     if (meta.get("parameters") or {}).get("redistance"):
         out["redistanced"] = True
+    if (meta.get("parameters") or {}).get("close_box_layers"):
+        out["box_layers_closed"] = True
     return out
 
 
