@@ -210,7 +210,9 @@ def _print_worst_cell(quality: dict, periodic: bool) -> None:
         line += f"; {quality['n_dihedral_below_10']} tets with a dihedral angle below 10 deg"
     print(line)
     if plane and cell["q"] < 0.1 and cell.get("on_interface") and plane["distance"] == 0.0:
-        roll = " (--roll auto moves the box planes of a periodic grid away from the inclusions' extremes)" if periodic else ""
+        roll = (" (--roll auto moves the box planes of a periodic grid away from the inclusions' extremes)" if periodic
+                else " (--close-box-layers closes the layers along the planes of a plain box thinner than a sixth of "
+                     "a grid step: a level-set input's interface then meets the plane at an angle)")
         print(f"    note: an interface meets or grazes the box plane {name} there, leaving a wedge of the domain "
               f"thinner than the elements{roll}")
 

@@ -458,7 +458,8 @@ def _refuse_flat_cells(mesh, stage: str) -> None:
     on_plane = plane["distance"] == 0.0 and cell["on_interface"]
     cause = (f"an interface touches the box plane {'xyz'[plane['axis']]} = {plane['at']:g} there: the domain between "
              "them thins to nothing, thinner than any element; hint: move the box planes off the inclusions' "
-             "extremes (a periodic grid: roll='auto' / --roll auto; a plain box: move the plane by a grid layer)" if on_plane else
+             "extremes (a periodic grid: roll='auto' / --roll auto; a plain box: close_box_layers=True / "
+             "--close-box-layers, or move the plane by a grid layer)" if on_plane else
              "the domain there is thinner than any element (interfaces nearly meet there); hint: sample the field "
              "finer or move the interfaces apart")
     name = "tet" if mesh.dim == 3 else "triangle"
@@ -466,7 +467,7 @@ def _refuse_flat_cells(mesh, stage: str) -> None:
     raise MeshingError(stage, f"{count} flat after the quality stages (|V| <= {FLAT_REL_VOLUME:g} l_max^{mesh.dim} "
                        f"or an angle below {FLAT_ANGLE_DEG:g} deg; the flattest: V / l_max^{mesh.dim} = {rel[k]:.2g}, "
                        f"angle {angles[k]:.2g} deg) near x = {tuple(round(v, 4) for v in cell['centroid'])}: "
-                       f"{cause}", frame_dependent=on_plane)
+                       f"{cause}", frame_dependent=on_plane, at_box_plane=on_plane)
 
 
 def inclusion_table(ms, mesh) -> list[dict]:

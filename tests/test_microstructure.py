@@ -800,6 +800,13 @@ def test_close_box_layers_closes_only_layers_thinner_than_the_fraction_along_a_p
     assert changed == n
     assert np.all(np.sign(out[:, -1]) == np.sign(sheet[:, -1])) and np.all(out[:, -1] > sheet[:, -1])
     assert np.all(2 * out[:, -1] - out[:, -2] > 0) and np.array_equal(out[:, :-1], sheet[:, :-1])
+    # a layer under one or two samples of the plane is kept: closing it would make a speck of trace
+    speck = np.ones((n, n))
+    speck[1, 7:9], speck[0, 7:9] = -1.0, 0.01
+    assert close_box_layers(speck, fraction)[1] == 0
+    speck[1, 7:11], speck[0, 7:11] = -1.0, 0.01
+    out, changed = close_box_layers(speck, fraction)
+    assert changed == 4 and np.all(out[0, 7:11] < 0)
 
 
 def test_with_box_layers_closed_brings_a_grazing_interface_onto_a_plain_box_plane():

@@ -416,3 +416,51 @@ def test_a_part_the_box_cuts_too_thin_is_refused_as_touching_the_box():
     with pytest.raises(ValueError, match="negative samples") as err:
         Microstructure.from_levelset(speck, periodic=False)
     assert "touches the box" not in str(err.value)
+
+
+def _flat_bottom_ellipsoid(n: int, gap_steps: float) -> np.ndarray:
+    """An oblate ellipsoid (0.32, 0.32, 0.1) whose flat bottom lies gap_steps grid steps above z = 0,
+    about a distance near its surface: a matrix layer that thin along the plane."""
+    x = np.arange(n) / n
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    axes = np.array([0.32, 0.32, 0.1])
+    u = np.stack([X - 0.5, Y - 0.5, Z - (0.1 + gap_steps / n)], -1) / axes
+    r = np.linalg.norm(u, axis=-1)
+    return (r - 1) * r / np.linalg.norm(u / axes, axis=-1).clip(1e-9)
+
+
+def test_cli_close_box_layers_meets_the_plane_at_an_angle(tmp_path, capsys):
+    """A matrix layer 0.02 steps thick under a flat bottom: as given the mesh is valid but holds a wedge
+    of tets between the interface and the plane (q below 0.1); with --close-box-layers the bottom
+    reaches the plane, the interface meets it at an angle, and validate reads the input closed as the
+    mesh file says."""
+    path = tmp_path / "layer.npy"
+    np.save(path, _flat_bottom_ellipsoid(24, 0.02))
+    out, report = tmp_path / "closed.vtu", tmp_path / "r.json"
+    assert main(["mesh", str(path), "-o", str(out), "--no-periodic", "--close-box-layers", "--report", str(report)]) == 0
+    assert "layers along the box planes thinner than a sixth of a step closed" in capsys.readouterr().out
+    data = json.loads(report.read_text())
+    assert data["metadata"]["validation"]["ok"] is True and data["metadata"]["parameters"]["close_box_layers"]
+    assert data["quality"]["min_dihedral_deg"] > 10.0 and data["quality"]["q_min"] > 0.3
+    assert main(["validate", str(out), "--geometry", str(path), "--no-periodic"]) == 0
+    assert "--close-box-layers" in capsys.readouterr().out  # taken from the file
+    assert main(["mesh", str(path), "-o", str(tmp_path / "p.vtu"), "--close-box-layers"]) == 2  # periodic
+    assert "periodic=False" in capsys.readouterr().err
+
+
+def test_a_failure_at_a_box_plane_is_retried_with_the_layers_closed():
+    from jaxmesh._errors import MeshingError
+    from jaxmesh._pipeline import _retry_config
+
+    phi = _flat_bottom_ellipsoid(16, 0.02)
+    plain = Microstructure.from_levelset(phi, periodic=False)
+    at_plane = MeshingError("volume", "recovery stopped", 1, at_box_plane=True)
+    config, key, how = _retry_config(plain, MeshConfig(periodic=False), None, at_plane)
+    assert config.close_box_layers is True and key == "close_box_layers" and "--close-box-layers" in how
+    assert _retry_config(plain, MeshConfig(periodic=False, close_box_layers=False), None, at_plane) is None
+    assert _retry_config(plain, MeshConfig(periodic=False), None, MeshingError("volume", "elsewhere", 1)) is None
+    analytic = Microstructure.from_functions([sphere_sdf(jnp.array([0.5, 0.5, 0.5]), 0.2)], BOX, (16, 16, 16),
+                                             periodic=False)
+    assert _retry_config(analytic, MeshConfig(periodic=False), None, at_plane) is None
+    with pytest.raises(ValueError, match="close_box_layers needs periodic=False"):
+        MeshConfig(close_box_layers=True)

@@ -219,16 +219,18 @@ def edt(mask: np.ndarray, spacing, full=None) -> np.ndarray:
     return dist[tuple(slice(p[0], p[0] + w) for p, w in zip(pad, mask.shape))]
 
 
-def close_box_layers(v: np.ndarray, fraction: float) -> tuple[np.ndarray, int]:
+def close_box_layers(v: np.ndarray, fraction: float, min_patch: int = 4) -> tuple[np.ndarray, int]:
     """A plain box's samples with the layers along its planes thinner than `fraction` of a grid step
     closed: where the level set crosses zero between a box plane and the first sample inside, within
     that fraction of a step of the plane, the value on the plane takes the inner sample's sign (a
     matrix layer: the inclusion then reaches the plane; a sheet of inclusion: it is dropped), with a
     crossing moved `fraction` of the way to the next sample beyond the plane. The plane x = 0 holds
     sample 0; the plane x = L holds the linear continuation 2 v[n-1] - v[n-2]
-    (`extrapolate_beyond_domain`), set by raising |v[n-1]| (its sign stays). The mesher follows no
-    layer thinner than the size function's floor; closing them moves the interface by at most that
-    much, at those places only. Returns (new values, number of box-plane samples changed)."""
+    (`extrapolate_beyond_domain`), set by raising |v[n-1]| (its sign stays). A change that would leave
+    a patch of one sign on the plane smaller than min_patch samples (a new speck of trace, or a pinhole
+    in one) is not made. The mesher follows no layer thinner than the size function's floor; closing
+    them moves the interface by at most that much, at those places only. Returns (new values, number
+    of box-plane samples changed)."""
     out = np.array(v, dtype=float, copy=True)
     changed = 0
     for a in range(out.ndim):
@@ -238,6 +240,12 @@ def close_box_layers(v: np.ndarray, fraction: float) -> tuple[np.ndarray, int]:
             plane = 2.0 * w[-1] - w[-2] if far else w[0]
             crossing = np.abs(plane) / np.maximum(np.abs(plane) + np.abs(inner), np.finfo(float).tiny)
             close = (np.sign(plane) != np.sign(inner)) & (inner != 0) & (crossing < fraction)
+            if close.any():
+                negative = np.where(close, inner < 0, plane < 0)
+                for side in (negative, ~negative):
+                    patches, _ = ndimage.label(side)
+                    size = np.bincount(patches.ravel())
+                    close &= ~(side & (size[patches] < min_patch))
             target = np.sign(inner) * fraction * np.abs(inner)  # the new value on the plane
             if far:
                 w[-1] = np.where(close, 0.5 * (target + w[-2]), w[-1])
