@@ -7,7 +7,9 @@ not wrapped (plain boxes) passing a fraction of a step from a box edge or corner
 sets from `jaxmesh generate --kind grf`, percolating inclusions: endless fibres, a gyroid
 network, percolating excursion sets; and fields written as users write them: random spheres
 placed with no box clearance, algebraic ellipsoid fields and thresholded random fields that are not
-distances, distance transforms of voxel images and a quantised distance), runs `jaxmesh mesh` on it and prints one line per case. With --no-periodic the same fields are meshed as plain boxes
+distances, distance transforms of voxel images and a quantised distance; flat-bottomed ellipsoids a
+fraction of a step off a plain box's plane, as given and with --close-box-layers), runs `jaxmesh mesh`
+on it and prints one line per case. With --no-periodic the same fields are meshed as plain boxes
 (`jaxmesh mesh --no-periodic`: the box cuts the inclusions, each piece one inclusion).
     .venv/bin/python benchmarks/sweep_shapes.py [OUT_DIR] [--only NAME ...] [--build-only] [--no-periodic]
 """
@@ -283,6 +285,20 @@ def _beyond_the_box(name: str, centre, r: float, depth: float, note: str, n: int
     return case
 
 
+def _flat_bottom(name: str, offset: float, extra: list[str], n: int = 24):
+    """An oblate ellipsoid (semi-axes 0.32, 0.32, 0.1) whose flat bottom lies `offset` grid steps above
+    z = 0 (a matrix layer that thin along the plane) or below it (the interface crosses the plane at a
+    shallow angle), about a distance near its surface; not periodic: run with --no-periodic."""
+    def case(out: Path):
+        axes = np.array([0.32, 0.32, 0.1])
+        u = (_grid(n) - np.array([0.5, 0.5, 0.1 + offset / n])) / axes
+        r = np.linalg.norm(u, axis=-1)
+        np.save(p := out / f"{name}.npy", (r - 1) * r / np.linalg.norm(u / axes, axis=-1).clip(1e-9))
+        where = "above" if offset > 0 else "below"
+        return p, extra, f"flat bottom {abs(offset):g} steps {where} z = 0, {n}^3{', ' + ' '.join(extra) if extra else ''}"
+    return case
+
+
 def _unwrapped_sphere(name: str, centre, r: float, note: str, n: int = 48):
     """A sphere's distance sampled as users write it, with no wrapping: not periodic, so it is meshed
     as a plain box whatever the sweep's mode (cut by the planes it crosses)."""
@@ -436,6 +452,10 @@ CASES = {
     "voxel_sphere_pointwise": _voxel_sphere("voxel_sphere", ["--curv-average", "0"]),
     "quantised_sphere": _voxel_sphere("quantised_sphere", [], quantise=True),
     "voxel_spheres": case_voxel_spheres,
+    "layer_matrix": _flat_bottom("layer_matrix", 0.02, []),
+    "layer_matrix_closed": _flat_bottom("layer_matrix", 0.02, ["--close-box-layers"]),
+    "layer_cross": _flat_bottom("layer_cross", -0.02, []),
+    "layer_cross_closed": _flat_bottom("layer_cross", -0.02, ["--close-box-layers"]),
 }
 
 
