@@ -334,7 +334,9 @@ def _missing_cause(surface: SurfaceMesh, miss: np.ndarray) -> tuple[str, bool]:
                 "inclusion off the edge or across it, sample the field finer, or raise max_recovery_rounds)"), True
     if layer or to_plane[first] <= size:  # a layer along the plane: its triangles may be far smaller than it is thick
         remedy = ("--roll auto moves the box planes off the inclusions' extremes" if surface.periodic else
-                  "a periodic field meshed periodic (with --roll auto) avoids the plane")
+                  "--close-box-layers closes the layers along a plain box's planes thinner than a sixth of a "
+                  "grid step (level sets; tried once by default); a periodic field meshed periodic (with --roll "
+                  "auto) avoids the plane")
         return (f"{place}, {to_plane[first]:.2g} from the box plane {plane}: the interface there is nearly tangent "
                 "to the plane (it grazes it, or a layer thinner than the grid step meets it), and the nodes recovery "
                 "adds come ever closer to the plane; hint: sample or smooth the field so that the interface crosses "
