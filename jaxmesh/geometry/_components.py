@@ -223,9 +223,9 @@ def close_box_layers(v: np.ndarray, fraction: float, min_patch: int = 4) -> tupl
     """A plain box's samples with the layers along its planes thinner than `fraction` of a grid step
     closed: where the level set crosses zero between a box plane and the first sample inside, within
     that fraction of a step of the plane, the value on the plane takes the inner sample's sign (a
-    matrix layer: the inclusion then reaches the plane; a sheet of inclusion: it is dropped), with a
-    crossing moved `fraction` of the way to the next sample beyond the plane. The plane x = 0 holds
-    sample 0; the plane x = L holds the linear continuation 2 v[n-1] - v[n-2]
+    matrix layer: the inclusion then reaches the plane; a sheet of inclusion: it is dropped), its new
+    value `fraction` times the inner sample's (the zero crossing then lies beyond the plane). The plane
+    x = 0 holds sample 0; the plane x = L holds the linear continuation 2 v[n-1] - v[n-2]
     (`extrapolate_beyond_domain`), set by raising |v[n-1]| (its sign stays). A change that would leave
     a patch of one sign on the plane smaller than min_patch samples (a new speck of trace, or a pinhole
     in one) is not made. The mesher follows no layer thinner than the size function's floor; closing

@@ -570,7 +570,8 @@ class Microstructure:
             close_box_layers: plain boxes only: close the layers along the box planes thinner than
                 BOX_LAYER_STEPS of a grid step (`_components.close_box_layers`: an interface that
                 grazes a plane from inside reaches it, a sheet of inclusion along it is dropped),
-                after redistancing. The mesher cannot follow such a layer: its recovery stops there.
+                after redistancing. The mesher fills such a layer with tets as thin as it is, or its
+                volume recovery stops there.
 
         Returns:
             The Microstructure; each inclusion's description holds n_samples and thickness (steps),
