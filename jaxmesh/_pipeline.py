@@ -194,8 +194,11 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redis
                              "from_levelset, from_labels or from_functions; hint: pass the path")
         ms = source.redistanced() if redistance and source.can_redistance else source
         reread = ms.rolled
+        if close_box_layers and ms.can_close_box_layers:  # level sets on a plain box only, as redistance
+            ms = ms.with_box_layers_closed()
     elif isinstance(source, (str, Path)):
-        ms = load_input(source, box=box, periodic=periodic, redistance=redistance)
+        ms = load_input(source, box=box, periodic=periodic, redistance=redistance,
+                        close_box_layers=close_box_layers and not periodic)
         reread = lambda samples: load_input(source, box=box, periodic=periodic, roll=samples,  # noqa: E731
                                             redistance=redistance)
     else:
@@ -203,8 +206,6 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redis
             f"expected a Microstructure or an input path (.npy/.npz/.tif), got {type(source).__name__}; "
             "hint: jaxmesh.load_input(path) or Microstructure.from_levelset(phi)"
         )
-    if close_box_layers and ms.can_close_box_layers:  # level sets on a plain box only, as redistance
-        ms = ms.with_box_layers_closed()
     if roll is None:
         return ms, {}
     clear, best = box_plane_clearances(ms)

@@ -9,6 +9,7 @@ from jaxmesh._periodic import minimum_image, points_near
 from jaxmesh.geometry._components import chord_thickness, label_components
 from jaxmesh.geometry._grid import grid_phi_fn, make_levelset_grid
 from jaxmesh.geometry._microstructure import Microstructure
+from jaxmesh.io._read import load_input
 
 
 def nodes(n, d):
@@ -809,7 +810,7 @@ def test_close_box_layers_closes_only_layers_thinner_than_the_fraction_along_a_p
     assert changed == 4 and np.all(out[0, 7:11] < 0)
 
 
-def test_with_box_layers_closed_brings_a_grazing_interface_onto_a_plain_box_plane():
+def test_with_box_layers_closed_brings_a_grazing_interface_onto_a_plain_box_plane(tmp_path):
     n = 24
     x = np.arange(n) / n
     X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
@@ -826,6 +827,15 @@ def test_with_box_layers_closed_brings_a_grazing_interface_onto_a_plain_box_plan
     assert closed.inclusions[0].lower[2] == 0 and closed.phi(np.array([[0.5, 0.5, 0.0]]))[0] < 0
     far = np.array([[0.5, 0.5, 0.5], [0.1, 0.2, 0.05]])  # away from the layer the field is the same
     assert np.allclose(closed.phi(far), ms.phi(far), atol=1e-6)
+    path = tmp_path / "grazing.npy"  # read from a file: closed in the one build
+    np.save(path, phi)
+    read = load_input(path, periodic=False, close_box_layers=True)
+    assert read.inclusions[0].description["box_layers_closed"] == closed.inclusions[0].description["box_layers_closed"]
+    assert np.allclose(read.phi(far), closed.phi(far), atol=0) and not read.can_close_box_layers
+    labels = tmp_path / "labels.npy"  # labelled images have no layers to close: the option is ignored
+    np.save(labels, (phi < 0).astype(np.int32))
+    image = load_input(labels, periodic=False, close_box_layers=True)
+    assert "box_layers_closed" not in image.inclusions[0].description
     with pytest.raises(ValueError, match="plain box"):
         Microstructure.from_levelset(phi, periodic=True, close_box_layers=True)
     ball = np.sqrt((X - 0.5) ** 2 + (Y - 0.5) ** 2 + (Z - 0.5) ** 2) - 0.25

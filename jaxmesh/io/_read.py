@@ -42,17 +42,17 @@ def _rolled(array: np.ndarray, roll, periodic: bool, path) -> np.ndarray:
     return np.roll(array, [-int(k) for k in roll], axis=tuple(range(array.ndim)))
 
 
-def _build(array: np.ndarray, box, periodic: bool, path, redistance: bool = False):
-    """Level set if real-valued, labelled image if integer / bool."""
+def _build(array: np.ndarray, box, periodic: bool, path, levelset_options: dict):
+    """Level set if real-valued (levelset_options go to from_levelset), labelled image if integer / bool."""
     if array.dtype.kind in "biu":
         return _construct(path, "labels", array, box, periodic)
     if array.dtype.kind == "f":
-        return _construct(path, "levelset", array, box, periodic, redistance=redistance)
+        return _construct(path, "levelset", array, box, periodic, **levelset_options)
     _fail(path, f"expected a float (level set) or integer/bool (labels) array, got dtype {array.dtype}",
           "save phi as float64 or labels as an integer image")
 
 
-def _read_npz(path: Path, box, periodic, roll=None, redistance: bool = False):
+def _read_npz(path: Path, box, periodic, roll, levelset_options: dict):
     try:
         with np.load(path, allow_pickle=False) as npz:
             data = {key: npz[key] for key in npz.files}
@@ -73,7 +73,7 @@ def _read_npz(path: Path, box, periodic, roll=None, redistance: bool = False):
     if periodic is None:
         periodic = bool(np.asarray(data["periodic"]).item()) if "periodic" in data else True
     if single:  # read as a .npy
-        return _build(_rolled(np.asarray(data["arr_0"]), roll, periodic, path), box, periodic, path, redistance)
+        return _build(_rolled(np.asarray(data["arr_0"]), roll, periodic, path), box, periodic, path, levelset_options)
     if roll is not None:
         key = "phi" if "phi" in data else "labels"
         shape = np.shape(data[key])
@@ -98,15 +98,15 @@ def _read_npz(path: Path, box, periodic, roll=None, redistance: bool = False):
         if phi.dtype.kind not in "f":
             _fail(path, f"expected 'phi' to hold real level-set values, got dtype {phi.dtype}",
                   "store labelled images under the key 'labels'")
-        return _construct(path, "levelset", phi, box, periodic, redistance=redistance)
+        return _construct(path, "levelset", phi, box, periodic, **levelset_options)
     labels = np.asarray(data["labels"])
     if labels.dtype.kind not in "biu":
         _fail(path, f"expected 'labels' to hold integers or bools, got dtype {labels.dtype}",
               "store level sets under the key 'phi', or cast labels with .astype(int)")
-    return _build(labels, box, periodic, path)
+    return _build(labels, box, periodic, path, levelset_options)
 
 
-def _read_vti(path: Path, box, periodic, roll=None, redistance: bool = False):
+def _read_vti(path: Path, box, periodic, roll, levelset_options: dict):
     try:
         import pyvista
     except ImportError:
@@ -124,10 +124,11 @@ def _read_vti(path: Path, box, periodic, roll=None, redistance: bool = False):
     array = np.asarray(image.point_data[name]).reshape(dims[::-1]).transpose()  # VTK: x fastest
     if box is None:
         box = tuple(float(n * h) for n, h in zip(image.dimensions, image.spacing) if n > 1)
-    return _build(_rolled(array, roll, periodic, path), box, periodic, path, redistance)
+    return _build(_rolled(array, roll, periodic, path), box, periodic, path, levelset_options)
 
 
-def load_input(path, box=None, periodic: bool | None = None, roll=None, redistance: bool = False):
+def load_input(path, box=None, periodic: bool | None = None, roll=None, redistance: bool = False,
+               close_box_layers: bool = False):
     """Read a microstructure from a file.
 
     Args:
@@ -144,6 +145,8 @@ def load_input(path, box=None, periodic: bool | None = None, roll=None, redistan
             then in the rolled frame). Analytic inclusions move with it. See `clearest_roll`.
         redistance: level sets only (labelled images and analytic inclusions are distances
             already): see `Microstructure.from_levelset`.
+        close_box_layers: level sets on a plain box only (periodic False), ignored for labelled
+            images and analytic inclusions: see `Microstructure.from_levelset`.
 
     Returns:
         A Microstructure.
@@ -161,15 +164,16 @@ def load_input(path, box=None, periodic: bool | None = None, roll=None, redistan
     if not path.is_file():
         _fail(path, "no such file", "check the path (relative paths start from the working directory)")
     ext = "".join(path.suffixes[-1:]).lower()
+    levelset_options = {"redistance": redistance, "close_box_layers": close_box_layers}
     if ext == ".npz":
-        return _read_npz(path, box, periodic, roll, redistance)
+        return _read_npz(path, box, periodic, roll, levelset_options)
     periodic = True if periodic is None else periodic
     if ext == ".npy":
         try:
             array = np.load(path, allow_pickle=False)
         except Exception as err:
             _fail(path, f"could not read it as .npy ({err})", "write it with numpy.save")
-        return _build(_rolled(np.asarray(array), roll, periodic, path), box, periodic, path, redistance)
+        return _build(_rolled(np.asarray(array), roll, periodic, path), box, periodic, path, levelset_options)
     if ext in (".tif", ".tiff"):
         try:
             from skimage import io as skio
@@ -177,7 +181,7 @@ def load_input(path, box=None, periodic: bool | None = None, roll=None, redistan
             array = np.asarray(skio.imread(str(path)))
         except Exception as err:
             _fail(path, f"could not read the TIFF ({err})", "save a single-channel 2D image or 3D stack")
-        return _build(_rolled(array, roll, periodic, path), box, periodic, path, redistance)
+        return _build(_rolled(array, roll, periodic, path), box, periodic, path, levelset_options)
     if ext == ".vti":
-        return _read_vti(path, box, periodic, roll, redistance)
+        return _read_vti(path, box, periodic, roll, levelset_options)
     _fail(path, f"unknown extension {ext or '(none)'!r}", f"supported formats: {_FORMATS}")
