@@ -45,6 +45,9 @@ class VolumeConfig:
         seed: seed of the jitter.
         qhull_options: options of scipy.spatial.Delaunay.
         max_recovery_rounds: Delaunay + recovery rounds before MeshingError.
+        min_split_edge: recovery stops (MeshingError) when it would split an edge shorter than this
+            share of the surface's median edge: halving edges down to there only chases an interface
+            that grazes a box edge or plane, until Qhull merges the nodes.
         flat_eps: a tet is flat when |V| <= flat_eps * l_max^3.
         relax: run the truss relaxation in `tetrahedralize` (needs jax; `_volume_relax`).
         truss: a jaxmesh._truss.TrussConfig for the relaxation, or None for the volume defaults.
@@ -61,6 +64,7 @@ class VolumeConfig:
     seed: int = 0
     qhull_options: str = "Qbb Qc Qz Q12"
     max_recovery_rounds: int = 12
+    min_split_edge: float = 3e-3
     flat_eps: float = 1e-10
     relax: bool = True
     truss: Any = None
@@ -71,6 +75,7 @@ class VolumeConfig:
 
     def __post_init__(self):
         for name, lo, hi in (("clearance", 0.0, 2.0), ("jitter", 0.0, 0.5), ("flat_eps", 0.0, 1e-3),
+                             ("min_split_edge", 0.0, 0.5),
                              ("sliver_angle", 0.0, 60.0), ("ball_vertex_stiffness", 0.0, np.inf)):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and lo <= v <= hi):
@@ -236,6 +241,8 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
     info = {"rounds": 0, "missing_first": 0, "interior_removed": 0, "surface_splits": 0, "flat_dropped": 0,
             "flat_interior": 0}
     history: list[int] = []  # missing triangles per round
+    split_floor = config.min_split_edge * _median_edge(surface)
+    last_missing = None  # (surface, missing mask) of the previous round, for the error's place
     for rnd in range(config.max_recovery_rounds + 1):
         surface, face_flips = delaunay_box_faces(surface)  # box faces lie on the hull: they must be 2D Delaunay
         surface, interface_flips = delaunay_interfaces(surface)
@@ -245,8 +252,13 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
         cells, dinfo = delaunay_tets(points, surface.box, config)
         info["flat_dropped"] += dinfo["flat_dropped"]
         if dinfo["coplanar"]:  # Qhull left nodes out (duplicates): a surface node must never be one
-            raise MeshingError("volume", f"Qhull skipped {dinfo['coplanar']} coincident nodes; hint: the "
-                               "surface holds duplicate nodes or interior nodes coincide with it")
+            if last_missing is None:
+                raise MeshingError("volume", f"Qhull skipped {dinfo['coplanar']} coincident nodes; hint: the "
+                                   "surface holds duplicate nodes or interior nodes coincide with it")
+            place, at_plane = _missing_cause(*last_missing)
+            raise MeshingError("volume", f"surface recovery stalled: its splits brought {dinfo['coplanar']} nodes "
+                               f"within Qhull's precision of others{place}",
+                               inclusion=_missing_inclusion(*last_missing), at_box_plane=at_plane)
         miss = missing_triangles(surface.triangles, cells, len(points))
         info["rounds"] = rnd
         history.append(int(miss.sum()))
@@ -282,6 +294,14 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
         el = np.linalg.norm(P[:, [1, 2, 0]] - P, axis=-1)  # edge j = (j, j+1)
         j = np.argmax(el, axis=1)
         edges = np.stack([tris[np.arange(len(tris)), j], tris[np.arange(len(tris)), (j + 1) % 3]], 1)
+        shortest = float(np.linalg.norm(np.diff(surface.points[edges], axis=1), axis=-1).min())
+        if shortest < split_floor:
+            place, at_plane = _missing_cause(surface, miss)
+            raise MeshingError("volume", f"surface recovery stalled: {int(miss.sum())} triangles still missing after "
+                               f"{rnd + 1} rounds and their edges split down to {shortest:.2g}, under "
+                               f"{config.min_split_edge:g} of the median surface edge{place}",
+                               inclusion=_missing_inclusion(surface, miss), at_box_plane=at_plane)
+        last_missing = (surface, miss)
         surface, added = split_edges(surface, edges, project_fn)
         info["surface_splits"] += int(added)
         if not added:  # the next round would be the same Delaunay: fail now, not after max_recovery_rounds
@@ -293,6 +313,11 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
     raise MeshingError("volume", f"{int(miss.sum())} surface triangles still missing and "
                        f"{dinfo['flat_interior']} flat tets after {config.max_recovery_rounds} recovery rounds"
                        f"{place}", inclusion=_missing_inclusion(surface, miss), at_box_plane=at_plane)
+
+
+def _median_edge(surface: SurfaceMesh) -> float:
+    P = surface.points[surface.triangles]
+    return float(np.median(np.linalg.norm(P[:, [1, 2, 0]] - P, axis=-1))) if len(P) else 0.0
 
 
 def _missing_place(surface: SurfaceMesh, miss: np.ndarray) -> str:
@@ -328,15 +353,16 @@ def _missing_cause(surface: SurfaceMesh, miss: np.ndarray) -> tuple[str, bool]:
     if layer:
         across = ", going on across it into the periodic image" if surface.periodic else ""
         place += f" ({layer} along the box plane {plane}{across})"
+    remedy = ("--roll auto moves the box planes off the inclusions' extremes (tried once by default)"
+              if surface.periodic else
+              "--close-box-layers closes the layers along a plain box's planes thinner than a sixth of a "
+              "grid step (level sets; tried once by default); a periodic field meshed periodic (with --roll "
+              "auto) avoids the plane")
     if to_plane[second] <= 10.0 * size:
         return (f"{place}, {to_plane[second]:.2g} from a box edge (seen where an interface passes a small fraction "
                 "of a grid step from a box edge: a layer thinner than the input resolves; hint: move the "
-                "inclusion off the edge or across it, sample the field finer, or raise max_recovery_rounds)"), True
+                f"inclusion off the edge or across it, or sample the field finer; {remedy})"), True
     if layer or to_plane[first] <= size:  # a layer along the plane: its triangles may be far smaller than it is thick
-        remedy = ("--roll auto moves the box planes off the inclusions' extremes" if surface.periodic else
-                  "--close-box-layers closes the layers along a plain box's planes thinner than a sixth of a "
-                  "grid step (level sets; tried once by default); a periodic field meshed periodic (with --roll "
-                  "auto) avoids the plane")
         return (f"{place}, {to_plane[first]:.2g} from the box plane {plane}: the interface there is nearly tangent "
                 "to the plane (it grazes it, or a layer thinner than the grid step meets it), and the nodes recovery "
                 "adds come ever closer to the plane; hint: sample or smooth the field so that the interface crosses "

@@ -228,6 +228,29 @@ def test_a_sphere_touching_a_box_plane_is_meshed_again_rolled(tmp_path):
     assert quality_report(mesh)["min_dihedral_deg"] >= 10.0
 
 
+def test_a_recovery_that_chases_a_sphere_past_a_box_edge_stops_early_and_is_meshed_again_rolled():
+    """A sphere passing 3e-5 (1e-3 grid steps) from the box edge y = z = 0 crosses both planes and leaves
+    a strip of face that thin between its traces and the edge: the recovery splits the strip's triangles
+    round after round (a periodic excursion set at 64^3 did so until Qhull merged two nodes, reported as
+    duplicates). It stops once an edge to split is under VolumeConfig.min_split_edge of the median surface
+    edge, naming the edge; mesh_rve then meshes the microstructure again rolled."""
+    from jaxmesh import MeshingError
+    from jaxmesh.geometry._microstructure import Microstructure
+    from jaxmesh.geometry._shapes import sphere_sdf
+
+    radius, gap = 0.2, 3e-5
+    c = (radius + gap) / np.sqrt(2.0)
+    ms = Microstructure.from_functions([sphere_sdf(np.array([0.5, c, c]), radius)], (1.0, 1.0, 1.0), (32,) * 3)
+    with pytest.raises(MeshingError, match=r"recovery stalled: .* under 0.003 of the median surface edge near "
+                                           r"x = .* from a box edge .* --roll auto") as failure:
+        mesh_rve(ms, MeshConfig(seed=0, roll=(0, 0, 0)))
+    assert failure.value.stage == "volume" and failure.value.frame_dependent
+    with pytest.warns(UserWarning, match="rolled frame"):
+        mesh = mesh_rve(ms, MeshConfig(seed=0))
+    assert "recovery stalled" in mesh.metadata["roll"]["after_failure"]
+    assert mesh.metadata["validation"]["ok"], mesh.metadata["validation"]
+
+
 def test_a_circle_touching_a_box_edge_is_meshed_again_rolled(tmp_path):
     """The 2D case: a circle tangent to y = 0 at a grid node. The triangles in the cusp keep a fair
     area ratio (V / l_max^2 above 1e-6, a cap's area goes with its small angles, not their product) but
