@@ -241,7 +241,7 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
     info = {"rounds": 0, "missing_first": 0, "interior_removed": 0, "surface_splits": 0, "flat_dropped": 0,
             "flat_interior": 0}
     history: list[int] = []  # missing triangles per round
-    split_floor = config.min_split_edge * _median_edge(surface)
+    split_floor = config.min_split_edge * _median_edge(surface.points[surface.triangles])
     last_missing = None  # (surface, missing mask) of the previous round, for the error's place
     for rnd in range(config.max_recovery_rounds + 1):
         surface, face_flips = delaunay_box_faces(surface)  # box faces lie on the hull: they must be 2D Delaunay
@@ -294,7 +294,7 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
         el = np.linalg.norm(P[:, [1, 2, 0]] - P, axis=-1)  # edge j = (j, j+1)
         j = np.argmax(el, axis=1)
         edges = np.stack([tris[np.arange(len(tris)), j], tris[np.arange(len(tris)), (j + 1) % 3]], 1)
-        shortest = float(np.linalg.norm(np.diff(surface.points[edges], axis=1), axis=-1).min())
+        shortest = float(el.max(axis=1).min())  # of the edges about to be split
         if shortest < split_floor:
             place, at_plane = _missing_cause(surface, miss)
             raise MeshingError("volume", f"surface recovery stalled: {int(miss.sum())} triangles still missing after "
@@ -315,9 +315,9 @@ def conforming_delaunay(surface: SurfaceMesh, interior: np.ndarray, config: Volu
                        f"{place}", inclusion=_missing_inclusion(surface, miss), at_box_plane=at_plane)
 
 
-def _median_edge(surface: SurfaceMesh) -> float:
-    P = surface.points[surface.triangles]
-    return float(np.median(np.linalg.norm(P[:, [1, 2, 0]] - P, axis=-1))) if len(P) else 0.0
+def _median_edge(corners: np.ndarray) -> float:
+    """Median edge length of triangles given by their corners (k, 3, 3); 0 for none."""
+    return float(np.median(np.linalg.norm(corners[:, [1, 2, 0]] - corners, axis=-1))) if len(corners) else 0.0
 
 
 def _missing_place(surface: SurfaceMesh, miss: np.ndarray) -> str:
@@ -340,7 +340,7 @@ def _missing_cause(surface: SurfaceMesh, miss: np.ndarray) -> tuple[str, bool]:
     box = np.asarray(surface.box, dtype=float)
     P = surface.points[surface.triangles[miss]]
     centroids = P.mean(axis=1)
-    size = float(np.median(np.linalg.norm(P[:, [1, 2, 0]] - P, axis=-1)))
+    size = _median_edge(P)
     crowd = cKDTree(centroids).query_ball_point(centroids, 0.05 * float(box.min()), return_length=True)
     centre = centroids[int(np.argmax(crowd))]
     to_plane = np.minimum(centre, box - centre)

@@ -10,6 +10,7 @@ from jaxmesh.geometry._components import chord_thickness, label_components
 from jaxmesh.geometry._grid import grid_phi_fn, make_levelset_grid
 from jaxmesh.geometry._microstructure import Microstructure
 from jaxmesh.io._read import load_input
+from _fields import flat_bottom_ellipsoid
 
 
 def nodes(n, d):
@@ -814,10 +815,7 @@ def test_with_box_layers_closed_brings_a_grazing_interface_onto_a_plain_box_plan
     n = 24
     x = np.arange(n) / n
     X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
-    axes = np.array([0.32, 0.32, 0.1])
-    u = np.stack([X - 0.5, Y - 0.5, Z - (0.1 + 0.02 / n)], -1) / axes  # flat bottom 0.02 steps above z = 0
-    r = np.linalg.norm(u, axis=-1)
-    phi = (r - 1) * r / np.linalg.norm(u / axes, axis=-1).clip(1e-9)  # about the distance near the surface
+    phi = flat_bottom_ellipsoid(n, 0.02)
     ms = Microstructure.from_levelset(phi, periodic=False)
     assert len(ms.inclusions) == 1 and ms.can_close_box_layers and not ms.can_roll
     assert ms.inclusions[0].lower[2] > 0 and ms.phi(np.array([[0.5, 0.5, 0.0]]))[0] > 0

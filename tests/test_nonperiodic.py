@@ -15,6 +15,7 @@ from jaxmesh._generate import gaussian_random_field
 from jaxmesh._quality import signed_volumes
 from jaxmesh._sizing import interface_sources
 from jaxmesh.geometry import _components as comp
+from _fields import flat_bottom_ellipsoid
 
 BOX = (1.0, 1.0, 1.0)
 # centred; cut by a face, by an edge (two faces), by a corner (three faces)
@@ -418,24 +419,13 @@ def test_a_part_the_box_cuts_too_thin_is_refused_as_touching_the_box():
     assert "touches the box" not in str(err.value)
 
 
-def _flat_bottom_ellipsoid(n: int, gap_steps: float) -> np.ndarray:
-    """An oblate ellipsoid (0.32, 0.32, 0.1) whose flat bottom lies gap_steps grid steps above z = 0,
-    about a distance near its surface: a matrix layer that thin along the plane."""
-    x = np.arange(n) / n
-    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
-    axes = np.array([0.32, 0.32, 0.1])
-    u = np.stack([X - 0.5, Y - 0.5, Z - (0.1 + gap_steps / n)], -1) / axes
-    r = np.linalg.norm(u, axis=-1)
-    return (r - 1) * r / np.linalg.norm(u / axes, axis=-1).clip(1e-9)
-
-
 def test_cli_close_box_layers_meets_the_plane_at_an_angle(tmp_path, capsys):
     """A matrix layer 0.02 steps thick under a flat bottom: as given the mesh is valid but holds a wedge
     of tets between the interface and the plane (q below 0.1); with --close-box-layers the bottom
     reaches the plane, the interface meets it at an angle, and validate reads the input closed as the
     mesh file says."""
     path = tmp_path / "layer.npy"
-    np.save(path, _flat_bottom_ellipsoid(24, 0.02))
+    np.save(path, flat_bottom_ellipsoid(24, 0.02))
     out, report = tmp_path / "closed.vtu", tmp_path / "r.json"
     assert main(["mesh", str(path), "-o", str(out), "--no-periodic", "--close-box-layers", "--report", str(report)]) == 0
     assert "layers along the box planes thinner than a sixth of a step closed" in capsys.readouterr().out
@@ -452,7 +442,7 @@ def test_a_failure_at_a_box_plane_is_retried_with_the_layers_closed():
     from jaxmesh._errors import MeshingError
     from jaxmesh._pipeline import _retry_config
 
-    phi = _flat_bottom_ellipsoid(16, 0.02)
+    phi = flat_bottom_ellipsoid(16, 0.02)
     plain = Microstructure.from_levelset(phi, periodic=False)
     at_plane = MeshingError("volume", "recovery stopped", 1, at_box_plane=True)
     config, key, how = _retry_config(plain, MeshConfig(periodic=False), None, at_plane)
