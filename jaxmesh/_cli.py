@@ -210,7 +210,7 @@ def _print_worst_cell(quality: dict, periodic: bool) -> None:
         line += f"; {quality['n_dihedral_below_10']} tets with a dihedral angle below 10 deg"
     print(line)
     if plane and cell["q"] < 0.1 and cell.get("on_interface") and plane["distance"] == 0.0:
-        roll = (" (--roll auto moves the box planes of a periodic grid away from the inclusions' extremes)" if periodic
+        roll = (" (--roll auto moves the box of a periodic grid off grazing meetings with the interfaces)" if periodic
                 else " (--close-box-layers closes the layers along the planes of a plain box thinner than a sixth of "
                      "a grid step: a level-set input's interface then meets the plane at an angle)")
         print(f"    note: an interface meets or grazes the box plane {name} there, leaving a wedge of the domain "
@@ -259,12 +259,12 @@ def _slope_info(ms) -> dict:
 
 
 def _box_plane_info(ms) -> dict:
-    """How close the box planes come to an inclusion's extreme, as given and with --roll auto."""
+    """How close the box comes to a grazing meeting with the interface, as given and with --roll auto."""
     from ._pipeline import box_plane_clearances
 
     clear, best = box_plane_clearances(ms)
-    return {"box_plane_clearance": round(float(min(c[0] for c in clear)), 6),
-            "with_roll_auto": f"{min(c[k] for c, k in zip(clear, best)):.6g} (samples {list(best)})"}
+    return {"box_plane_clearance": round(float(clear[(0,) * ms.dim]), 6),
+            "with_roll_auto": f"{clear[best]:.6g} (samples {list(best)})"}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -514,8 +514,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "robust to damaged surfaces, not conforming, not periodic; edge length --h or --iis)")
     m.add_argument("--roll", nargs="+", default=None, metavar="auto|K",
                    help="periodic grid inputs: mesh the grid rolled so that sample K_a lies at x_a = 0; 'auto' "
-                        "takes the planes farthest from the inclusions' extremes (box faces grazing an inclusion "
-                        "leave thin wedges of bad elements). The mesh is in the rolled frame; the report's "
+                        "takes the sample whose box is farthest from grazing meetings with the interfaces (box "
+                        "planes, edges or corners grazing an interface leave thin wedges of bad elements). The mesh is in the rolled frame; the report's "
                         "metadata.roll gives the offset. Without --roll, a periodic file input whose meshing fails "
                         "is meshed once more with 'auto' (--roll 0 0 0: never)")
     m.add_argument("--redistance", action=argparse.BooleanOptionalAction, default=None, help=_REDISTANCE_HELP)

@@ -156,3 +156,135 @@ def clearest_roll(lower, upper, box, shape) -> tuple[int, ...]:
 def clearest_planes(clearances: list[np.ndarray]) -> tuple[int, ...]:
     """`clearest_roll` from the per-axis clearances of `plane_clearances`."""
     return tuple(0 if c[0] >= c.max() else int(np.argmax(c)) for c in clearances)
+
+
+# --- the frame of a periodic grid: where its box planes, edges and corners meet the interface ---------
+#
+# A box plane tangent to the interface, a trace on a box face tangent to a box edge, or an interface
+# through a box corner leaves a wedge of the domain thinner than the elements. Rolling a periodic grid
+# moves the box to any sample; these functions score each sample as the box corner. Distances are
+# physical; the interface is the zero set of the samples, linearly interpolated (marching cubes or
+# squares), which finds tangencies to well within a step of where the cubic field has them.
+
+_PAD = 2  # samples of periodic padding: contour vertices in the cell then have their whole neighbourhood
+
+
+def _ahead(points: np.ndarray, a: int, i, j) -> np.ndarray:
+    """Whether points[j] comes after points[i] along axis a, ties broken by the next axes in turn:
+    the height function tilted by an infinitesimal, so vertices sharing a grid coordinate (most do)
+    make no spurious extremes."""
+    order = [a] + [b for b in range(points.shape[1]) if b != a]
+    ahead = np.zeros(np.shape(i), bool)
+    decided = np.zeros(np.shape(i), bool)
+    for b in order:
+        u, v = points[i, b], points[j, b]
+        ahead |= ~decided & (v > u)
+        decided |= u != v
+    return ahead
+
+
+def _contour_critical_heights(values: np.ndarray, step: np.ndarray) -> list[np.ndarray]:
+    """Per axis a, the coordinates x_a (in [0, L_a)) of the zero set's points where it is tangent to a
+    plane x_a = const (extremes and, in 3D, saddles of the height x_a on the contour) of periodic
+    samples values (2D or 3D)."""
+    from skimage.measure import find_contours, marching_cubes
+
+    dim = values.ndim
+    padded = np.pad(values, _PAD, mode="wrap")
+    padded = np.where(padded == 0.0, 1e-12 * float(np.abs(values).max() or 1.0), padded)
+    box = step * np.array(values.shape)
+    if dim == 3:
+        if padded.min() >= 0 or padded.max() <= 0:
+            return [np.empty(0)] * 3
+        verts, faces, _, _ = marching_cubes(padded, 0.0, spacing=tuple(step), allow_degenerate=False)
+        points = verts.astype(float) - _PAD * step
+        # a vertex is regular when the signs of its link's vertices (above/below it) change twice round it;
+        # each link edge is the far edge of one incident triangle, so count triangles whose far ends differ
+        corner = faces.reshape(-1)
+        far = [np.roll(faces, -1, axis=1).reshape(-1), np.roll(faces, -2, axis=1).reshape(-1)]
+        links = lambda a: np.bincount(corner, _ahead(points, a, corner, far[0]) != _ahead(points, a, corner, far[1]),
+                                      minlength=len(points))  # noqa: E731
+    else:
+        contours = [c * step for c in find_contours(padded, 0.0)]
+        if not contours:
+            return [np.empty(0)] * 2
+        points = np.concatenate(contours) - _PAD * step
+        starts = np.cumsum([0] + [len(c) for c in contours[:-1]])
+        ends = starts + np.array([len(c) for c in contours]) - 1
+        closed = np.array([np.array_equal(c[0], c[-1]) for c in contours])
+        index = np.arange(len(points))
+        owner = np.repeat(np.arange(len(contours)), [len(c) for c in contours])
+        prev, nxt = index - 1, index + 1
+        # a closed polyline repeats its first point last: its ends' neighbours are across that point
+        prev = np.where(index == starts[owner], np.where(closed[owner], ends[owner] - 1, -1), prev)
+        nxt = np.where(index == ends[owner], np.where(closed[owner], starts[owner] + 1, -1), nxt)
+        interior = (prev >= 0) & (nxt >= 0) & ~(closed[owner] & (index == ends[owner]))
+
+        def links(a):
+            i = np.flatnonzero(interior)
+            out = np.full(len(points), 2)
+            out[i] = 2 * (_ahead(points, a, i, prev[i]) != _ahead(points, a, i, nxt[i]))
+            return out
+    inside = np.all((points >= 0) & (points < box), axis=1)
+    return [points[inside & (links(a) != 2), a] for a in range(dim)]
+
+
+def _distance_to_heights(n: int, length: float, heights: np.ndarray) -> np.ndarray:
+    """(n,) periodic distance from each grid plane k L / n to the nearest of heights (inf if none)."""
+    if not len(heights):
+        return np.full(n, np.inf)
+    planes = np.arange(n) * (length / n)
+    return np.abs(minimum_image(planes[:, None] - np.asarray(heights)[None, :], np.array([length]))).min(axis=1)
+
+
+def _corner_crossings(values: np.ndarray, step: np.ndarray, a: int) -> np.ndarray:
+    """(values.shape) distance along axis a from each sample to the zero crossing of the grid line
+    through it in its two adjacent cells (inf where neither crosses): an interface near a box corner."""
+    ahead = np.roll(values, -1, axis=a)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(np.sign(values) != np.sign(ahead), values / (values - ahead), np.inf)
+    to_ahead = np.where(np.isfinite(t), (1.0 - t), np.inf)  # from sample k+1 back to the crossing in [k, k+1]
+    return step[a] * np.minimum(t, np.roll(to_ahead, 1, axis=a))
+
+
+def frame_clearance(values, box, lower=None, upper=None) -> np.ndarray:
+    """For a periodic grid of samples values (n_1, ..., n_d) (negative inside), the array (n_1, ..., n_d)
+    whose entry k is the smallest distance, in the frame whose box corner is sample k, between the box
+    and a grazing meeting with the interface: a box plane and a point where the interface is tangent
+    to it (or an inclusion extent bound, lower/upper (N, d), when given); in 3D a box edge and a point
+    where a box face's trace is tangent to it; a box corner and the interface's crossing of a box edge.
+
+    NumPy and scikit-image only. Rolling the grid by -k puts the box corner at sample k."""
+    values = np.asarray(values, dtype=float)
+    box = np.asarray(box, dtype=float)
+    dim, shape = values.ndim, values.shape
+    step = box / np.array(shape)
+    expand = lambda vec, axes: vec.reshape([shape[b] if b in axes else 1 for b in range(dim)])  # noqa: E731
+    clearance = np.full(shape, np.inf)
+    heights = _contour_critical_heights(values, step)
+    if lower is not None and len(lower):
+        bounds = np.concatenate([np.asarray(lower, float).reshape(-1, dim), np.asarray(upper, float).reshape(-1, dim)])
+        heights = [np.concatenate([h, bounds[:, a]]) for a, h in enumerate(heights)]
+    for a in range(dim):
+        np.minimum(clearance, expand(_distance_to_heights(shape[a], box[a], heights[a]), (a,)), out=clearance)
+        np.minimum(clearance, _corner_crossings(values, step, a), out=clearance)
+    if dim == 3:
+        for a in range(3):
+            b, c = [x for x in range(3) if x != a]
+            along_b, along_c = np.full((shape[a], shape[b]), np.inf), np.full((shape[a], shape[c]), np.inf)
+            for k in range(shape[a]):
+                face = np.take(values, k, axis=a)
+                hb, hc = _contour_critical_heights(face, step[[b, c]])
+                along_b[k] = _distance_to_heights(shape[b], box[b], hb)
+                along_c[k] = _distance_to_heights(shape[c], box[c], hc)
+            np.minimum(clearance, along_b.reshape([shape[x] if x in (a, b) else 1 for x in range(3)]), out=clearance)
+            np.minimum(clearance, along_c.reshape([shape[x] if x in (a, c) else 1 for x in range(3)]), out=clearance)
+    return clearance
+
+
+def clearest_frame(clearance: np.ndarray) -> tuple[int, ...]:
+    """The sample of `frame_clearance` farthest from every grazing meeting; zeros where the frame as
+    given is already as clear."""
+    if clearance[(0,) * clearance.ndim] >= clearance.max():
+        return (0,) * clearance.ndim
+    return tuple(int(k) for k in np.unravel_index(np.argmax(clearance), clearance.shape))

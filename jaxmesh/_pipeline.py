@@ -74,9 +74,11 @@ class MeshConfig:
             periodic Microstructure (`Microstructure.can_roll`) is meshed once more with "auto" and
             metadata['roll']['after_failure'] keeps the first error), "auto" or d integers (zeros: as
             given, no second try): mesh a periodic grid rolled so that sample roll[a] lies at x_a = 0.
-            "auto" takes, per axis, the grid plane farthest from every inclusion's extent bounds
-            (`jaxmesh.clearest_roll`): box faces that graze an inclusion leave wedges thinner than the
-            elements. The mesh is in the rolled frame;
+            "auto" takes the sample whose frame keeps the box farthest from every grazing meeting with
+            the interface (a box plane near a point where the interface is tangent to it or near an
+            inclusion's extreme, in 3D a box edge near a face trace's tangency, a corner near the
+            interface; `box_plane_clearances`): those leave wedges thinner than the elements. The mesh
+            is in the rolled frame;
             metadata['roll'] gives the samples and the offset (mesh x = file x - offset, mod L).
         backend: 3D volume mesher. "conforming" (default): keeps every surface triangle, periodic or not.
             "tetwild": fTetWild (pytetwild) on the marching-cubes surface of the grid at edge length
@@ -215,22 +217,22 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redis
     samples = tuple(k % n for k, n in zip(samples, ms.grid_shape))
     step = np.asarray(ms.box, float) / np.asarray(ms.grid_shape)
     info = {"samples": [int(k) for k in samples], "offset": [float(k * s) for k, s in zip(samples, step)],
-            "clearance_before": float(min(c[0] for c in clear)),
-            "clearance_after": float(min(c[k] for c, k in zip(clear, samples)))}
+            "clearance_before": float(clear[(0,) * ms.dim]), "clearance_after": float(clear[samples])}
     if any(samples):
         ms = reread(samples)
     return ms, info
 
 
-def box_plane_clearances(ms) -> tuple[list[np.ndarray], tuple[int, ...]]:
-    """Per axis, the distance from each grid plane to the nearest inclusion extreme
-    (`_periodic.plane_clearances`), and the clearest planes (`_periodic.clearest_planes`)."""
-    from ._periodic import clearest_planes, plane_clearances
+def box_plane_clearances(ms) -> tuple[np.ndarray, tuple[int, ...]]:
+    """For a periodic microstructure, the array (grid_shape) of how close the box of the frame whose
+    corner is each sample comes to a grazing meeting with the interface or an inclusion's extreme
+    (`_periodic.frame_clearance` of dn1), and the clearest sample (`_periodic.clearest_frame`)."""
+    from ._periodic import clearest_frame, frame_clearance
 
     lower = np.array([inc.lower for inc in ms.inclusions], dtype=float).reshape(-1, ms.dim)
     upper = np.array([inc.upper for inc in ms.inclusions], dtype=float).reshape(-1, ms.dim)
-    clear = plane_clearances(lower, upper, ms.box, ms.grid_shape)
-    return clear, clearest_planes(clear)
+    clear = frame_clearance(np.asarray(ms.dn1), ms.box, lower, upper)
+    return clear, clearest_frame(clear)
 
 
 def _inside_out_hint(ms) -> str:
@@ -263,15 +265,17 @@ def _parts_note(ms) -> str:
 
 
 def _grazing_hint(ms) -> str:
-    """A note for the input line when a periodic box plane passes closer to an inclusion's extreme than
-    the size function's box-gap floor (a sixth of a grid step): the wedge there will hold flat tets."""
+    """A note for the input line when the periodic box comes closer to a grazing meeting with the
+    interface (`box_plane_clearances`) than the size function's box-gap floor (a sixth of a grid step):
+    the wedge there will hold flat tets."""
     if not ms.periodic or not ms.inclusions:
         return ""
-    clear = min(float(c[0]) for c in box_plane_clearances(ms)[0])
+    clear = float(box_plane_clearances(ms)[0][(0,) * ms.dim])
     if clear >= min(ms.spacing) / 6:
         return ""
-    return (f"; note: a box plane passes {clear:.2g} from an inclusion's extreme, under a sixth of a grid step: "
-            "expect flat tets there (roll='auto' / --roll auto on a periodic grid moves the box planes)")
+    return (f"; note: the box passes {clear:.2g} from a grazing meeting with the interface (a box plane tangent "
+            "to it, a face's trace tangent to a box edge, or the interface at a corner), under a sixth of a grid "
+            "step: expect flat tets there (roll='auto' / --roll auto on a periodic grid moves the box)")
 
 
 def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Callable[[str], None] | None = None):
@@ -350,18 +354,18 @@ def _retry_config(source, config: MeshConfig, box, failure: MeshingError) -> tup
             "validate with --close-box-layers)")
     if failure.frame_dependent and _rolling_helps(source, config):
         return dataclasses.replace(config, roll="auto"), "roll", (
-            "with the box planes moved off the inclusions (roll='auto'; the mesh is in the rolled frame, "
+            "with the box moved off grazing meetings with the interface (roll='auto'; the mesh is in the rolled frame, "
             "metadata['roll'] gives the offset; validate with --roll auto)")
     return None
 
 
 def _rolling_helps(ms, config: MeshConfig) -> bool:
     """Whether a periodic microstructure meshed in its own frame (roll None; an explicit roll, zeros
-    included, is kept) can roll and rolling moves its box planes farther from the inclusions' extremes."""
+    included, is kept) can roll and rolling moves its box farther from grazing meetings with the interface."""
     if config.roll is not None or not config.periodic or config.backend != "conforming" or not ms.can_roll:
         return False
     clear, best = box_plane_clearances(ms)
-    return min(c[k] for c, k in zip(clear, best)) > min(c[0] for c in clear)
+    return clear[best] > clear[(0,) * ms.dim]
 
 
 def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
@@ -385,8 +389,8 @@ def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
                          "the same flag (from_levelset(..., periodic=...)) or set MeshConfig(periodic=...) to match")
     _check_sizes_against_box(config, ms.box)
     rolled = (f"; rolled by {tuple(roll['samples'])} samples (the mesh's origin is the file's "
-              f"{tuple(round(v, 6) for v in roll['offset'])}; box planes {roll['clearance_after']:.3g} from the "
-              f"nearest inclusion extreme, {roll['clearance_before']:.3g} unrolled)") if roll else ""
+              f"{tuple(round(v, 6) for v in roll['offset'])}; the box {roll['clearance_after']:.3g} from a "
+              f"grazing meeting with the interface, {roll['clearance_before']:.3g} unrolled)") if roll else ""
     t = stage("input", t, f"{ms.dim}D, {len(ms.inclusions)} inclusions, grid {tuple(ms.grid_shape)}{rolled}"
                           f"{_parts_note(ms)}{_grazing_hint(ms) if config.roll is None else ''}"
                           f"{_inside_out_hint(ms)}{_closed_layers_note(ms)}")
@@ -458,8 +462,8 @@ def _refuse_flat_cells(mesh, stage: str) -> None:
     plane = cell["nearest_box_plane"]
     on_plane = plane["distance"] == 0.0 and cell["on_interface"]
     cause = (f"an interface touches the box plane {'xyz'[plane['axis']]} = {plane['at']:g} there: the domain between "
-             "them thins to nothing, thinner than any element; hint: move the box planes off the inclusions' "
-             "extremes (a periodic grid: roll='auto' / --roll auto; a plain box: close_box_layers=True / "
+             "them thins to nothing, thinner than any element; hint: move the box planes off the grazing "
+             "meetings (a periodic grid: roll='auto' / --roll auto; a plain box: close_box_layers=True / "
              "--close-box-layers, or move the plane by a grid layer)" if on_plane else
              "the domain there is thinner than any element (interfaces nearly meet there); hint: sample the field "
              "finer or move the interfaces apart")

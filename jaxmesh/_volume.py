@@ -353,8 +353,8 @@ def _missing_cause(surface: SurfaceMesh, miss: np.ndarray) -> tuple[str, bool]:
     if layer:
         across = ", going on across it into the periodic image" if surface.periodic else ""
         place += f" ({layer} along the box plane {plane}{across})"
-    remedy = ("--roll auto moves the box planes off the inclusions' extremes (tried once by default where that "
-              "moves them farther)"
+    remedy = ("--roll auto moves the box off grazing meetings with the interfaces (tried once by default "
+              "where that moves it farther)"
               if surface.periodic else
               "--close-box-layers closes the layers along a plain box's planes thinner than a sixth of a "
               "grid step (level sets; tried once by default); a periodic field meshed periodic (with --roll "
