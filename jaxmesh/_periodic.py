@@ -146,10 +146,14 @@ def plane_clearances(lower, upper, box, shape) -> list[np.ndarray]:
     return out
 
 
-def clearest_roll(lower, upper, box, shape) -> tuple[int, ...]:
+def clearest_roll(lower, upper, box, shape, values=None) -> tuple[int, ...]:
     """Per axis, the grid sample k whose plane lies farthest from every inclusion bound
     (`plane_clearances`); 0 where the plane x_a = 0 is already as clear. Rolling the periodic
-    grid by -k puts the box faces there."""
+    grid by -k puts the box faces there. Given the samples values (shape), the sample whose box is
+    farthest from every grazing meeting with their interface as well (`frame_clearance`), as
+    roll='auto' takes it."""
+    if values is not None:
+        return clearest_frame(frame_clearance(values, box, lower, upper))
     return clearest_planes(plane_clearances(lower, upper, box, shape))
 
 

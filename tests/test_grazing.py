@@ -79,6 +79,72 @@ def test_clearest_roll_moves_the_box_planes_off_the_inclusion_extremes():
     assert clearest_roll(lower[:0], upper[:0], (1.0, 1.0, 1.0), (10, 10, 10)) == (0, 0, 0)
 
 
+def _sphere_field(n: int, centre, radius: float, dim: int = 3) -> np.ndarray:
+    x = np.arange(n) / n
+    d = np.stack(np.meshgrid(*[x] * dim, indexing="ij"), axis=-1) - np.asarray(centre)
+    d -= np.round(d)
+    return np.linalg.norm(d, axis=-1) - radius
+
+
+def _edge_tangent_sphere(n: int, miss: float) -> tuple[np.ndarray, np.ndarray]:
+    """A sphere (radius 0.25) whose trace on the face y = 0 passes miss above the box edge y = z = 0,
+    while the sphere's own extremes stay clear of every box plane (z: 0.021 below z = 0)."""
+    radius = 0.25
+    centre = np.array([0.5, 0.1, np.sqrt(radius**2 - 0.1**2) + miss])
+    return _sphere_field(n, centre, radius), centre
+
+
+def test_frame_clearance_finds_where_the_interface_meets_the_box_at_a_grazing_angle():
+    """Tangencies of the sampled interface to grid planes (extremes and saddles), of face traces to box
+    edges, and the interface at a corner: a trace 2e-5 above a box edge is found, where the inclusion's
+    extent bounds, the score `clearest_roll` uses, see the box 0.02 away."""
+    from jaxmesh import clearest_roll
+    from jaxmesh._periodic import _contour_critical_heights, clearest_frame, frame_clearance, plane_clearances
+
+    n, step = 32, np.full(3, 1 / 32)
+    heights = _contour_critical_heights(_sphere_field(n, [0.5, 0.47, 0.55], 0.2), step)
+    for found, pole in zip(heights, [0.5, 0.47, 0.55]):
+        np.testing.assert_allclose(np.sort(found), [pole - 0.2, pole + 0.2], atol=1e-3)
+    x = np.arange(n) / n - 0.5
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    torus = np.hypot(np.hypot(X, Y) - 0.25, Z) - 0.08  # x-extremes at +-0.33, saddles on the hole at +-0.17
+    np.testing.assert_allclose(np.sort(_contour_critical_heights(torus, step)[0]), [0.17, 0.33, 0.67, 0.83], atol=1e-3)
+    circle = _contour_critical_heights(_sphere_field(n, [0.5, 0.47], 0.2, dim=2), step[:2])
+    np.testing.assert_allclose(np.sort(circle[1]), [0.27, 0.67], atol=1e-3)
+
+    phi, centre = _edge_tangent_sphere(n, 2e-5)
+    clearance = frame_clearance(phi, (1.0, 1.0, 1.0))
+    bounds = plane_clearances(centre[None] - 0.25, centre[None] + 0.25, (1.0, 1.0, 1.0), (n,) * 3)
+    assert clearance[0, 0, 0] < 1e-4 and min(b[0] for b in bounds) > 0.02
+    best = clearest_frame(clearance)
+    assert best != (0, 0, 0) and clearance[best] > 0.2
+    assert clearest_roll(centre[None] - 0.25, centre[None] + 0.25, (1.0, 1.0, 1.0), (n,) * 3, values=phi) == best
+    corner = _sphere_field(n, np.full(3, 0.2 / np.sqrt(3) + 1e-5), 0.2)  # through the box corner, 1e-5 off it
+    assert frame_clearance(corner, (1.0, 1.0, 1.0))[0, 0, 0] < 1e-4
+    far = _sphere_field(n, [0.5, 0.5, 0.5], 0.2)
+    assert frame_clearance(far, (1.0, 1.0, 1.0))[0, 0, 0] == pytest.approx(0.3, abs=1e-3)
+    assert clearest_frame(frame_clearance(far, (1.0, 1.0, 1.0))) == (0, 0, 0)
+
+
+def test_the_input_line_notes_a_face_trace_grazing_a_box_edge(tmp_path, capsys):
+    """The sphere whose trace on y = 0 passes 2e-5 above the edge y = z = 0: the input line notes the
+    grazing meeting (its extremes are 0.02 from the planes, which the note did not see before), and
+    `jaxmesh info` gives the clearance as given and rolled."""
+    from jaxmesh._cli import main
+
+    phi, _ = _edge_tangent_sphere(32, 2e-5)
+    np.save(tmp_path / "edge.npy", phi)
+    lines = []
+    with pytest.raises(ValueError, match="max_elements"):
+        mesh_rve(tmp_path / "edge.npy", MeshConfig(max_elements=10), progress=lines.append)
+    note = re.search(r"the box passes ([\d.e-]+) from a grazing meeting", lines[0])
+    assert note and float(note.group(1)) < 1e-4 and "--roll auto" in lines[0]
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "edge.npy")]) == 0
+    info = re.search(r"box_plane_clearance: ([\d.e-]+)\n\s+with_roll_auto: ([\d.e-]+) \(samples", capsys.readouterr().out)
+    assert float(info.group(1)) < 1e-4 < 0.2 < float(info.group(2))
+
+
 def test_roll_auto_meshes_a_grid_sphere_grazing_a_box_plane_without_slivers(tmp_path):
     """A sphere 2e-6 across x = 0 (a 0.05 deg tet in an ellipsoid RVE like it): with roll 'auto' the box
     planes move to the grid planes farthest from its extremes, the mesh is valid in the rolled frame,
@@ -95,7 +161,7 @@ def test_roll_auto_meshes_a_grid_sphere_grazing_a_box_plane_without_slivers(tmp_
     lines = []  # as given, the input line warns (the size stage then stops: max_elements)
     with pytest.raises(ValueError, match="max_elements"):
         mesh_rve(tmp_path / "graze.npy", MeshConfig(max_elements=10), progress=lines.append)
-    assert "a box plane passes" in lines[0] and "--roll auto" in lines[0]
+    assert "the box passes" in lines[0] and "--roll auto" in lines[0]
     lines.clear()
     mesh = mesh_rve(tmp_path / "graze.npy", MeshConfig(roll="auto", seed=0), progress=lines.append)
     assert "rolled by" in lines[0] and "note:" not in lines[0]
