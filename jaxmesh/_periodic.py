@@ -251,14 +251,15 @@ def _corner_crossings(values: np.ndarray, step: np.ndarray, a: int) -> np.ndarra
     return step[a] * np.minimum(t, np.roll(to_ahead, 1, axis=a))
 
 
-def frame_clearance(values, box, lower=None, upper=None) -> np.ndarray:
+def frame_clearance(values, box, lower=None, upper=None, origin_only: bool = False) -> np.ndarray:
     """For a periodic grid of samples values (n_1, ..., n_d) (negative inside), the array (n_1, ..., n_d)
     whose entry k is the smallest distance, in the frame whose box corner is sample k, between the box
     and a grazing meeting with the interface: a box plane and a point where the interface is tangent
     to it (or an inclusion extent bound, lower/upper (N, d), when given); in 3D a box edge and a point
     where a box face's trace is tangent to it; a box corner and the interface's crossing of a box edge.
 
-    NumPy and scikit-image only. Rolling the grid by -k puts the box corner at sample k."""
+    NumPy and scikit-image only. Rolling the grid by -k puts the box corner at sample k. origin_only:
+    only entry 0 is right (the face traces of the other frames, most of the cost, are not looked at)."""
     values = np.asarray(values, dtype=float)
     box = np.asarray(box, dtype=float)
     dim, shape = values.ndim, values.shape
@@ -276,7 +277,7 @@ def frame_clearance(values, box, lower=None, upper=None) -> np.ndarray:
         for a in range(3):
             b, c = [x for x in range(3) if x != a]
             along_b, along_c = np.full((shape[a], shape[b]), np.inf), np.full((shape[a], shape[c]), np.inf)
-            for k in range(shape[a]):
+            for k in range(1 if origin_only else shape[a]):
                 face = np.take(values, k, axis=a)
                 hb, hc = _contour_critical_heights(face, step[[b, c]])
                 along_b[k] = _distance_to_heights(shape[b], box[b], hb)

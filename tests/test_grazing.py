@@ -116,6 +116,7 @@ def test_frame_clearance_finds_where_the_interface_meets_the_box_at_a_grazing_an
     clearance = frame_clearance(phi, (1.0, 1.0, 1.0))
     bounds = plane_clearances(centre[None] - 0.25, centre[None] + 0.25, (1.0, 1.0, 1.0), (n,) * 3)
     assert clearance[0, 0, 0] < 1e-4 and min(b[0] for b in bounds) > 0.02
+    assert frame_clearance(phi, (1.0, 1.0, 1.0), origin_only=True)[0, 0, 0] == clearance[0, 0, 0]
     best = clearest_frame(clearance)
     assert best != (0, 0, 0) and clearance[best] > 0.2
     assert clearest_roll(centre[None] - 0.25, centre[None] + 0.25, (1.0, 1.0, 1.0), (n,) * 3, values=phi) == best
