@@ -188,9 +188,9 @@ def _ahead(points: np.ndarray, a: int, i, j) -> np.ndarray:
 
 
 def _contour_critical_heights(values: np.ndarray, step: np.ndarray) -> list[np.ndarray]:
-    """Per axis a, the coordinates x_a (in [0, L_a)) of the zero set's points where it is tangent to a
-    plane x_a = const (extremes and, in 3D, saddles of the height x_a on the contour) of periodic
-    samples values (2D or 3D)."""
+    """The zero set of the periodic samples values (2D or 3D): per axis a, the coordinates x_a (in
+    [0, L_a)) of its points where it is tangent to a plane x_a = const (extremes, and in 3D saddles, of
+    the height x_a on it)."""
     from skimage.measure import find_contours, marching_cubes
 
     dim = values.ndim
@@ -206,8 +206,10 @@ def _contour_critical_heights(values: np.ndarray, step: np.ndarray) -> list[np.n
         # each link edge is the far edge of one incident triangle, so count triangles whose far ends differ
         corner = faces.reshape(-1)
         far = [np.roll(faces, -1, axis=1).reshape(-1), np.roll(faces, -2, axis=1).reshape(-1)]
-        links = lambda a: np.bincount(corner, _ahead(points, a, corner, far[0]) != _ahead(points, a, corner, far[1]),
-                                      minlength=len(points))  # noqa: E731
+
+        def links(a):
+            changes = _ahead(points, a, corner, far[0]) != _ahead(points, a, corner, far[1])
+            return np.bincount(corner, changes, minlength=len(points))
     else:
         contours = [c * step for c in find_contours(padded, 0.0)]
         if not contours:
@@ -255,8 +257,9 @@ def frame_clearance(values, box, lower=None, upper=None, origin_only: bool = Fal
     """For a periodic grid of samples values (n_1, ..., n_d) (negative inside), the array (n_1, ..., n_d)
     whose entry k is the smallest distance, in the frame whose box corner is sample k, between the box
     and a grazing meeting with the interface: a box plane and a point where the interface is tangent
-    to it (or an inclusion extent bound, lower/upper (N, d), when given); in 3D a box edge and a point
-    where a box face's trace is tangent to it; a box corner and the interface's crossing of a box edge.
+    to it (or an inclusion extent bound, lower/upper (N, d), when given; NaN: none along that axis); in
+    3D a box edge and a point where a box face's trace is tangent to it; a box corner and the
+    interface's crossing of a box edge.
 
     NumPy and scikit-image only. Rolling the grid by -k puts the box corner at sample k. origin_only:
     only entry 0 is right (the face traces of the other frames, most of the cost, are not looked at)."""
@@ -264,12 +267,14 @@ def frame_clearance(values, box, lower=None, upper=None, origin_only: bool = Fal
     box = np.asarray(box, dtype=float)
     dim, shape = values.ndim, values.shape
     step = box / np.array(shape)
-    expand = lambda vec, axes: vec.reshape([shape[b] if b in axes else 1 for b in range(dim)])  # noqa: E731
+    def expand(array, axes):  # broadcast over the frames' other axes
+        return array.reshape([shape[b] if b in axes else 1 for b in range(dim)])
+
     clearance = np.full(shape, np.inf)
     heights = _contour_critical_heights(values, step)
     if lower is not None and len(lower):
         bounds = np.concatenate([np.asarray(lower, float).reshape(-1, dim), np.asarray(upper, float).reshape(-1, dim)])
-        heights = [np.concatenate([h, bounds[:, a]]) for a, h in enumerate(heights)]
+        heights = [np.concatenate([h, bounds[np.isfinite(bounds[:, a]), a]]) for a, h in enumerate(heights)]
     for a in range(dim):
         np.minimum(clearance, expand(_distance_to_heights(shape[a], box[a], heights[a]), (a,)), out=clearance)
         np.minimum(clearance, _corner_crossings(values, step, a), out=clearance)
@@ -282,8 +287,8 @@ def frame_clearance(values, box, lower=None, upper=None, origin_only: bool = Fal
                 hb, hc = _contour_critical_heights(face, step[[b, c]])
                 along_b[k] = _distance_to_heights(shape[b], box[b], hb)
                 along_c[k] = _distance_to_heights(shape[c], box[c], hc)
-            np.minimum(clearance, along_b.reshape([shape[x] if x in (a, b) else 1 for x in range(3)]), out=clearance)
-            np.minimum(clearance, along_c.reshape([shape[x] if x in (a, c) else 1 for x in range(3)]), out=clearance)
+            np.minimum(clearance, expand(along_b, (a, b)), out=clearance)
+            np.minimum(clearance, expand(along_c, (a, c)), out=clearance)
     return clearance
 
 

@@ -232,6 +232,8 @@ def box_plane_clearances(ms, origin_only: bool = False) -> tuple[np.ndarray, tup
 
     lower = np.array([inc.lower for inc in ms.inclusions], dtype=float).reshape(-1, ms.dim)
     upper = np.array([inc.upper for inc in ms.inclusions], dtype=float).reshape(-1, ms.dim)
+    spans = upper - lower >= np.asarray(ms.box) * (1 - 1e-12)  # percolates along that axis: no extreme there
+    lower, upper = np.where(spans, np.nan, lower), np.where(spans, np.nan, upper)
     clear = frame_clearance(np.asarray(ms.dn1), ms.box, lower, upper, origin_only=origin_only)
     return clear, (0,) * ms.dim if origin_only else clearest_frame(clear)
 
