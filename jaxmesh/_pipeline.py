@@ -276,8 +276,8 @@ def _grazing_hint(ms) -> str:
     clear = float(box_plane_clearances(ms, origin_only=True)[0][(0,) * ms.dim])
     if clear >= min(ms.spacing) / 6:
         return ""
-    return (f"; note: the box passes {clear:.2g} from a grazing meeting with the interface (a box plane tangent "
-            "to it, a face's trace tangent to a box edge, or the interface at a corner), under a sixth of a grid "
+    return (f"; note: the box passes {clear:.2g} from a grazing meeting with the interface (the interface tangent "
+            "to a box plane, a face's trace tangent to a box edge, or the interface at a box corner), under a sixth of a grid "
             "step: expect flat tets there (roll='auto' / --roll auto on a periodic grid moves the box)")
 
 
@@ -465,8 +465,8 @@ def _refuse_flat_cells(mesh, stage: str) -> None:
     plane = cell["nearest_box_plane"]
     on_plane = plane["distance"] == 0.0 and cell["on_interface"]
     cause = (f"an interface touches the box plane {'xyz'[plane['axis']]} = {plane['at']:g} there: the domain between "
-             "them thins to nothing, thinner than any element; hint: move the box planes off the grazing "
-             "meetings (a periodic grid: roll='auto' / --roll auto; a plain box: close_box_layers=True / "
+             "them thins to nothing, thinner than any element; hint: move the box plane off it (a periodic "
+             "grid: roll='auto' / --roll auto; a plain box: close_box_layers=True / "
              "--close-box-layers, or move the plane by a grid layer)" if on_plane else
              "the domain there is thinner than any element (interfaces nearly meet there); hint: sample the field "
              "finer or move the interfaces apart")
