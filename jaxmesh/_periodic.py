@@ -262,31 +262,36 @@ def frame_clearance(values, box, lower=None, upper=None, origin_only: bool = Fal
     interface's crossing of a box edge.
 
     NumPy and scikit-image only. Rolling the grid by -k puts the box corner at sample k. origin_only:
-    only entry 0 is right (the face traces of the other frames, most of the cost, are not looked at)."""
+    the frame as given only, an array of ones in shape (its face traces only, not every frame's: the
+    most of the cost, and no array of the grid's size)."""
     values = np.asarray(values, dtype=float)
     box = np.asarray(box, dtype=float)
     dim, shape = values.ndim, values.shape
     step = box / np.array(shape)
-    def expand(array, axes):  # broadcast over the frames' other axes
-        return array.reshape([shape[b] if b in axes else 1 for b in range(dim)])
+    frames = (1,) * dim if origin_only else shape
 
-    clearance = np.full(shape, np.inf)
+    def expand(array, axes):  # broadcast over the frames' other axes
+        return array.reshape([frames[b] if b in axes else 1 for b in range(dim)])
+
+    def planes(a, heights):  # the frames' box planes of axis a: distances to heights
+        return _distance_to_heights(shape[a], box[a], heights)[:frames[a]]
+
+    clearance = np.full(frames, np.inf)
     heights = _contour_critical_heights(values, step)
     if lower is not None and len(lower):
         bounds = np.concatenate([np.asarray(lower, float).reshape(-1, dim), np.asarray(upper, float).reshape(-1, dim)])
         heights = [np.concatenate([h, bounds[np.isfinite(bounds[:, a]), a]]) for a, h in enumerate(heights)]
     for a in range(dim):
-        np.minimum(clearance, expand(_distance_to_heights(shape[a], box[a], heights[a]), (a,)), out=clearance)
-        np.minimum(clearance, _corner_crossings(values, step, a), out=clearance)
+        np.minimum(clearance, expand(planes(a, heights[a]), (a,)), out=clearance)
+        lines = values[tuple(slice(None) if b == a else slice(frames[b]) for b in range(dim))]
+        np.minimum(clearance, np.take(_corner_crossings(lines, step, a), range(frames[a]), axis=a), out=clearance)
     if dim == 3:
         for a in range(3):
             b, c = [x for x in range(3) if x != a]
-            along_b, along_c = np.full((shape[a], shape[b]), np.inf), np.full((shape[a], shape[c]), np.inf)
-            for k in range(1 if origin_only else shape[a]):
-                face = np.take(values, k, axis=a)
-                hb, hc = _contour_critical_heights(face, step[[b, c]])
-                along_b[k] = _distance_to_heights(shape[b], box[b], hb)
-                along_c[k] = _distance_to_heights(shape[c], box[c], hc)
+            along_b, along_c = np.full((frames[a], frames[b]), np.inf), np.full((frames[a], frames[c]), np.inf)
+            for k in range(frames[a]):
+                hb, hc = _contour_critical_heights(np.take(values, k, axis=a), step[[b, c]])
+                along_b[k], along_c[k] = planes(b, hb), planes(c, hc)
             np.minimum(clearance, expand(along_b, (a, b)), out=clearance)
             np.minimum(clearance, expand(along_c, (a, c)), out=clearance)
     return clearance

@@ -227,7 +227,7 @@ def box_plane_clearances(ms, origin_only: bool = False) -> tuple[np.ndarray, tup
     """For a periodic microstructure, the array (grid_shape) of how close the box of the frame whose
     corner is each sample comes to a grazing meeting with the interface or an inclusion's extreme
     (`_periodic.frame_clearance` of dn1), and the clearest sample (`_periodic.clearest_frame`).
-    origin_only: only the frame as given is right (a third of the cost); the sample is then zeros."""
+    origin_only: the frame as given only (an array of ones in shape; a third of the cost), the sample zeros."""
     from ._periodic import clearest_frame, frame_clearance
 
     lower = np.array([inc.lower for inc in ms.inclusions], dtype=float).reshape(-1, ms.dim)

@@ -122,6 +122,10 @@ def test_frame_clearance_finds_where_the_interface_meets_the_box_at_a_grazing_an
     assert clearest_roll(centre[None] - 0.25, centre[None] + 0.25, (1.0, 1.0, 1.0), (n,) * 3, values=phi) == best
     corner = _sphere_field(n, np.full(3, 0.2 / np.sqrt(3) + 1e-5), 0.2)  # through the box corner, 1e-5 off it
     assert frame_clearance(corner, (1.0, 1.0, 1.0))[0, 0, 0] < 1e-4
+    for field in (corner, torus, phi[:, :20]):  # the frame as given alone: the same entry (a non-cubic grid too)
+        cell = (1.0, field.shape[1] / n, 1.0)
+        origin = frame_clearance(field, cell, origin_only=True)
+        assert origin.shape == (1, 1, 1) and origin[0, 0, 0] == frame_clearance(field, cell)[0, 0, 0]
     far = _sphere_field(n, [0.5, 0.5, 0.5], 0.2)
     assert frame_clearance(far, (1.0, 1.0, 1.0))[0, 0, 0] == pytest.approx(0.3, abs=1e-3)
     assert clearest_frame(frame_clearance(far, (1.0, 1.0, 1.0))) == (0, 0, 0)
