@@ -39,7 +39,8 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--input", default=None, help="a periodic input file instead of the generated RVEs")
-    parser.add_argument("--grid", type=int, nargs="+", default=[128], help="grids of the generated RVE (gap 0.01: 128 or finer)")
+    parser.add_argument("--grid", type=int, nargs="+", default=[128],
+                        help="grids of the generated RVE (gap 0.01: 128 or finer)")
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
     code = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -53,7 +54,8 @@ def main() -> None:
                                   min_gap=0.01, seed=0)
         cases = [(f"200 spheres at 48 %, {n}^3", lambda n=n: microstructure_from_specs(specs, box, (n,) * 3))
                  for n in args.grid]
-    print("| input | build (s) | frame as given (s) | every frame (s) | ratios to the build | clearance as given / best |")
+    print("| input | build (s) | frame as given (s) | every frame (s) | ratios to the build "
+          "| clearance as given / best |")
     print("|---|---:|---:|---:|---:|---:|")
     for name, build in cases:
         t_build, ms = best_of(args.repeat, build)

@@ -276,9 +276,10 @@ def _grazing_hint(ms) -> str:
     clear = float(box_plane_clearances(ms, origin_only=True)[0][(0,) * ms.dim])
     if clear >= min(ms.spacing) / 6:
         return ""
-    return (f"; note: the box passes {clear:.2g} from a grazing meeting with the interface (the interface tangent "
-            "to a box plane, a face's trace tangent to a box edge, or the interface at a box corner), under a sixth of a grid "
-            "step: expect flat tets there (roll='auto' / --roll auto on a periodic grid moves the box)")
+    return (f"; note: the box passes {clear:.2g} from a grazing meeting with the interface (the interface "
+            "tangent to a box plane, a face's trace tangent to a box edge, or the interface at a box corner), under "
+            "a sixth of a grid step: expect flat tets there (roll='auto' / --roll auto on a periodic grid moves "
+            "the box)")
 
 
 def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Callable[[str], None] | None = None):
@@ -357,8 +358,8 @@ def _retry_config(source, config: MeshConfig, box, failure: MeshingError) -> tup
             "validate with --close-box-layers)")
     if failure.frame_dependent and _rolling_helps(source, config):
         return dataclasses.replace(config, roll="auto"), "roll", (
-            "with the box moved off grazing meetings with the interface (roll='auto'; the mesh is in the rolled frame, "
-            "metadata['roll'] gives the offset; validate with --roll auto)")
+            "with the box moved off grazing meetings with the interface (roll='auto'; the mesh is in the rolled "
+            "frame, metadata['roll'] gives the offset; validate with --roll auto)")
     return None
 
 
