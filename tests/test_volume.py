@@ -685,4 +685,4 @@ def test_a_failed_periodic_recovery_says_the_layer_goes_on_across_the_plane():
     message = _missing_place(surface, np.ones(surface.n_triangles, bool))
     assert "(a layer of inclusion 1 about 0.0002 thick along the box plane x_2 = 0, going on across it into the " \
            "periodic image)" in message
-    assert "--roll auto moves the box planes" in message and "meshed periodic" not in message
+    assert "--roll auto moves the box off" in message and "meshed periodic" not in message
