@@ -134,16 +134,8 @@ def plane_clearances(lower, upper, box, shape) -> list[np.ndarray]:
     lower, upper: (N, d) inclusion bounds (unwrapped); box: (d,); shape: grid samples per axis.
     """
     lower, upper = np.asarray(lower, float).reshape(-1, len(box)), np.asarray(upper, float).reshape(-1, len(box))
-    out = []
-    for a, (length, n) in enumerate(zip(box, shape)):
-        planes = np.arange(n) * (length / n)
-        bounds = np.concatenate([lower[:, a], upper[:, a]])
-        if not len(bounds):
-            out.append(np.full(n, np.inf))
-            continue
-        gap = np.abs(minimum_image(planes[:, None] - bounds[None, :], np.array([length])))
-        out.append(gap.min(axis=1))
-    return out
+    return [_distance_to_heights(n, length, np.concatenate([lower[:, a], upper[:, a]]))
+            for a, (length, n) in enumerate(zip(box, shape))]
 
 
 def clearest_roll(lower, upper, box, shape, values=None) -> tuple[int, ...]:
@@ -253,13 +245,52 @@ def _corner_crossings(values: np.ndarray, step: np.ndarray, a: int) -> np.ndarra
     return step[a] * np.minimum(t, np.roll(to_ahead, 1, axis=a))
 
 
+def _crossing_slopes(values: np.ndarray, step: np.ndarray):
+    """How steeply the interface crosses the grid's planes and (in 3D) lines, at the zero crossings of
+    grid edges (gradient by periodic central differences, interpolated along the edge): per axis a,
+    (n_a,) the smallest tan of the angle between the interface and the plane x_a = k L_a / n_a; in 3D
+    also per axis b, (n, n) over the other two axes' samples, the smallest tan of the angle between a
+    trace on either plane through the line along b and that line. inf where nothing crosses."""
+    dim, shape = values.ndim, values.shape
+    planes = [np.full(n, np.inf) for n in shape]
+    lines = [np.full([shape[x] for x in range(3) if x != b], np.inf) for b in range(dim)] if dim == 3 else []
+
+    def shifted(index, a, by):
+        index = list(index)
+        index[a] = (index[a] + by) % shape[a]
+        return tuple(index)
+
+    def gradient(index):
+        return np.stack([(values[shifted(index, a, 1)] - values[shifted(index, a, -1)]) / (2 * step[a])
+                         for a in range(dim)])
+
+    for b in range(dim):
+        ahead = np.roll(values, -1, axis=b)
+        index = np.nonzero(np.sign(values) != np.sign(ahead))
+        if not len(index[0]):
+            continue
+        t = values[index] / (values[index] - ahead[index])
+        normal = np.abs((1 - t) * gradient(index) + t * gradient(shifted(index, b, 1)))
+        squared = (normal**2).sum(axis=0)
+        with np.errstate(divide="ignore", invalid="ignore"):  # a flat gradient: NaN, which fmin skips
+            for a in (x for x in range(dim) if x != b):  # the edge lies in the planes of the other axes
+                np.fmin.at(planes[a], index[a], np.sqrt(np.maximum(squared - normal[a] ** 2, 0.0)) / normal[a])
+            if dim == 3:  # the traces on the two planes through the line along b: tangent to it where n_b = 0
+                a, c = (x for x in range(3) if x != b)
+                np.fmin.at(lines[b], (index[a], index[c]), normal[b] / np.maximum(normal[a], normal[c]))
+    return planes, lines
+
+
 def frame_clearance(values, box, lower=None, upper=None, origin_only: bool = False) -> np.ndarray:
     """For a periodic grid of samples values (n_1, ..., n_d) (negative inside), the array (n_1, ..., n_d)
     whose entry k is the smallest distance, in the frame whose box corner is sample k, between the box
     and a grazing meeting with the interface: a box plane and a point where the interface is tangent
     to it (or an inclusion extent bound, lower/upper (N, d), when given; NaN: none along that axis); in
     3D a box edge and a point where a box face's trace is tangent to it; a box corner and the
-    interface's crossing of a box edge.
+    interface's crossing of a box edge; and a shallow crossing, as the wedge it leaves one step from
+    where it crosses: step * tan(angle) between the interface and a box plane, or in 3D between a
+    face's trace and a box edge (`_crossing_slopes`). Tangencies inside a cell cross no grid plane:
+    the distances above cover them.
 
     NumPy and scikit-image only. Rolling the grid by -k puts the box corner at sample k. origin_only:
     the frame as given only, an array of ones in shape (its face traces only, not every frame's: the
@@ -294,6 +325,12 @@ def frame_clearance(values, box, lower=None, upper=None, origin_only: bool = Fal
                 along_b[k], along_c[k] = planes(b, hb), planes(c, hc)
             np.minimum(clearance, expand(along_b, (a, b)), out=clearance)
             np.minimum(clearance, expand(along_c, (a, c)), out=clearance)
+    plane_slopes, line_slopes = _crossing_slopes(values, step)
+    for a, slopes in enumerate(plane_slopes):
+        np.minimum(clearance, expand(step.min() * slopes[:frames[a]], (a,)), out=clearance)
+    for b, slopes in enumerate(line_slopes):
+        a, c = (x for x in range(3) if x != b)
+        np.minimum(clearance, expand(step.min() * slopes[:frames[a], :frames[c]], (a, c)), out=clearance)
     return clearance
 
 

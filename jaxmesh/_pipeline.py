@@ -77,7 +77,7 @@ class MeshConfig:
             "auto" takes the sample whose frame keeps the box farthest from every grazing meeting with
             the interface (a box plane near a point where the interface is tangent to it or near an
             inclusion's extreme, in 3D a box edge near a face trace's tangency, a corner near the
-            interface; `box_plane_clearances`): those leave wedges thinner than the elements. The mesh
+            interface, a plane or edge crossed at a shallow angle; `box_plane_clearances`): those leave wedges thinner than the elements. The mesh
             is in the rolled frame;
             metadata['roll'] gives the samples and the offset (mesh x = file x - offset, mod L).
         backend: 3D volume mesher. "conforming" (default): keeps every surface triangle, periodic or not.
@@ -225,8 +225,8 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redis
 
 def box_plane_clearances(ms, origin_only: bool = False) -> tuple[np.ndarray, tuple[int, ...]]:
     """For a periodic microstructure, the array (grid_shape) of how close the box of the frame whose
-    corner is each sample comes to a grazing meeting with the interface or an inclusion's extreme
-    (`_periodic.frame_clearance` of dn1), and the clearest sample (`_periodic.clearest_frame`).
+    corner is each sample comes to a grazing meeting with the interface (a tangency, an inclusion's
+    extreme, or a shallow crossing; `_periodic.frame_clearance` of dn1), and the clearest sample (`_periodic.clearest_frame`).
     origin_only: the frame as given only (an array of ones in shape; a third of the cost), the sample zeros."""
     from ._periodic import clearest_frame, frame_clearance
 
@@ -277,9 +277,9 @@ def _grazing_hint(ms) -> str:
     if clear >= min(ms.spacing) / 6:
         return ""
     return (f"; note: the box passes {clear:.2g} from a grazing meeting with the interface (the interface "
-            "tangent to a box plane, a face's trace tangent to a box edge, or the interface at a box corner), under "
-            "a sixth of a grid step: expect flat tets there (roll='auto' / --roll auto on a periodic grid moves "
-            "the box)")
+            "tangent to a box plane or crossing one at under 9.5 deg, a face's trace likewise with a box edge, or "
+            "the interface at a box corner), under a sixth of a grid step: expect flat tets there (roll='auto' / "
+            "--roll auto on a periodic grid moves the box)")
 
 
 def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Callable[[str], None] | None = None):

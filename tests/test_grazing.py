@@ -131,6 +131,30 @@ def test_frame_clearance_finds_where_the_interface_meets_the_box_at_a_grazing_an
     assert clearest_frame(frame_clearance(far, (1.0, 1.0, 1.0))) == (0, 0, 0)
 
 
+def test_frame_clearance_sees_a_box_plane_crossing_the_interface_at_a_shallow_angle():
+    """A slab whose faces wave by 0.01 (z = 0.5 +- 5/32 + 0.01 sin 2 pi x): the grid plane z = 21/32 crosses
+    the upper face at 3.6 deg, away from any tangency (the crests are 0.01 from it, a third of a step).
+    The score takes the wedge one step from the crossing, step x tan(angle), and the clearest frame puts
+    the z planes where the faces cross none."""
+    from jaxmesh._periodic import _crossing_slopes, clearest_frame, frame_clearance
+
+    n, amplitude = 32, 0.01
+    x = np.arange(n) / n
+    X, _, Z = np.meshgrid(x, x, x, indexing="ij")
+    slab = np.abs(Z - 0.5 - amplitude * np.sin(2 * np.pi * X)) - 5 / 32
+    step = np.full(3, 1 / n)
+    planes, lines = _crossing_slopes(slab, step)
+    assert planes[2][21] == pytest.approx(2 * np.pi * amplitude, rel=0.1)  # tan of the steepest slope's angle
+    assert np.all(planes[0] > 5) and np.all(np.isinf(planes[1]))  # x planes cross the faces at 86 deg, y at 90
+    assert lines[0][0, 21] == pytest.approx(planes[2][21], rel=1e-9)  # the trace on y = 0 against the x edge
+    clearance = frame_clearance(slab, (1.0, 1.0, 1.0))
+    # the corner at x = 1/4 (x = 0 is on the crossing): the crest above it is 0.01 from the plane
+    assert clearance[8, 0, 21] == pytest.approx(2 * np.pi * amplitude / n, rel=0.1)
+    best = clearest_frame(clearance)
+    assert abs(x[best[2]] - 0.5) < 5 / 32 - 2 * amplitude or abs(x[best[2]] - 0.5) > 5 / 32 + 2 * amplitude
+    assert np.isinf(planes[2][best[2]])
+
+
 def test_the_input_line_notes_a_face_trace_grazing_a_box_edge(tmp_path, capsys):
     """The sphere whose trace on y = 0 passes 2e-5 above the edge y = z = 0: the input line notes the
     grazing meeting (its extremes are 0.02 from the planes, which the note did not see before), and
