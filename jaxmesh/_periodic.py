@@ -245,12 +245,13 @@ def _corner_crossings(values: np.ndarray, step: np.ndarray, a: int) -> np.ndarra
     return step[a] * np.minimum(t, np.roll(to_ahead, 1, axis=a))
 
 
-def _crossing_slopes(values: np.ndarray, step: np.ndarray):
+def _crossing_slopes(values: np.ndarray, step: np.ndarray, origin_only: bool = False):
     """How steeply the interface crosses the grid's planes and (in 3D) lines, at the zero crossings of
     grid edges (gradient by periodic central differences, interpolated along the edge): per axis a,
     (n_a,) the smallest tan of the angle between the interface and the plane x_a = k L_a / n_a; in 3D
     also per axis b, (n, n) over the other two axes' samples, the smallest tan of the angle between a
-    trace on either plane through the line along b and that line. inf where nothing crosses."""
+    trace on either plane through the line along b and that line. inf where nothing crosses.
+    origin_only: only the edges in the planes through sample 0 (the other entries stay inf)."""
     dim, shape = values.ndim, values.shape
     planes = [np.full(n, np.inf) for n in shape]
     lines = [np.full([shape[x] for x in range(3) if x != b], np.inf) for b in range(dim)] if dim == 3 else []
@@ -264,12 +265,18 @@ def _crossing_slopes(values: np.ndarray, step: np.ndarray):
         return np.stack([(values[shifted(index, a, 1)] - values[shifted(index, a, -1)]) / (2 * step[a])
                          for a in range(dim)])
 
+    def crossing_edges(b, a=None):  # edges along b (in the plane x_a = 0 only, given a): indices, and t
+        part = values if a is None else np.take(values, [0], axis=a)
+        ahead = np.roll(part, -1, axis=b)
+        index = np.nonzero(np.sign(part) != np.sign(ahead))
+        return index, part[index] / (part[index] - ahead[index])
+
     for b in range(dim):
-        ahead = np.roll(values, -1, axis=b)
-        index = np.nonzero(np.sign(values) != np.sign(ahead))
-        if not len(index[0]):
+        found = [crossing_edges(b, a) for a in range(dim) if a != b] if origin_only else [crossing_edges(b)]
+        index = tuple(np.concatenate([f[0][x] for f in found]) for x in range(dim))
+        t = np.concatenate([f[1] for f in found])
+        if not len(t):
             continue
-        t = values[index] / (values[index] - ahead[index])
         normal = np.abs((1 - t) * gradient(index) + t * gradient(shifted(index, b, 1)))
         squared = (normal**2).sum(axis=0)
         with np.errstate(divide="ignore", invalid="ignore"):  # a flat gradient: NaN, which fmin skips
@@ -325,7 +332,7 @@ def frame_clearance(values, box, lower=None, upper=None, origin_only: bool = Fal
                 along_b[k], along_c[k] = planes(b, hb), planes(c, hc)
             np.minimum(clearance, expand(along_b, (a, b)), out=clearance)
             np.minimum(clearance, expand(along_c, (a, c)), out=clearance)
-    plane_slopes, line_slopes = _crossing_slopes(values, step)
+    plane_slopes, line_slopes = _crossing_slopes(values, step, origin_only)
     for a, slopes in enumerate(plane_slopes):
         np.minimum(clearance, expand(step.min() * slopes[:frames[a]], (a,)), out=clearance)
     for b, slopes in enumerate(line_slopes):

@@ -150,6 +150,8 @@ def test_frame_clearance_sees_a_box_plane_crossing_the_interface_at_a_shallow_an
     clearance = frame_clearance(slab, (1.0, 1.0, 1.0))
     # the corner at x = 1/4 (x = 0 is on the crossing): the crest above it is 0.01 from the plane
     assert clearance[8, 0, 21] == pytest.approx(2 * np.pi * amplitude / n, rel=0.1)
+    rolled = np.roll(slab, (-8, -21), axis=(0, 2))  # that corner as the origin: the frame-as-given path
+    assert frame_clearance(rolled, (1.0, 1.0, 1.0), origin_only=True)[0, 0, 0] == pytest.approx(clearance[8, 0, 21])
     best = clearest_frame(clearance)
     assert abs(x[best[2]] - 0.5) < 5 / 32 - 2 * amplitude or abs(x[best[2]] - 0.5) > 5 / 32 + 2 * amplitude
     assert np.isinf(planes[2][best[2]])
