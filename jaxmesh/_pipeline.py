@@ -77,8 +77,8 @@ class MeshConfig:
             "auto" takes the sample whose frame keeps the box farthest from every grazing meeting with
             the interface (a box plane near a point where the interface is tangent to it or near an
             inclusion's extreme, in 3D a box edge near a face trace's tangency, a corner near the
-            interface, a plane or edge crossed at a shallow angle; `box_plane_clearances`): those leave wedges thinner than the elements. The mesh
-            is in the rolled frame;
+            interface, a plane or edge crossed at a shallow angle; `box_plane_clearances`): those leave
+            wedges thinner than the elements. The mesh is in the rolled frame;
             metadata['roll'] gives the samples and the offset (mesh x = file x - offset, mod L).
         backend: 3D volume mesher. "conforming" (default): keeps every surface triangle, periodic or not.
             "tetwild": fTetWild (pytetwild) on the marching-cubes surface of the grid at edge length
@@ -226,7 +226,8 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redis
 def box_plane_clearances(ms, origin_only: bool = False) -> tuple[np.ndarray, tuple[int, ...]]:
     """For a periodic microstructure, the array (grid_shape) of how close the box of the frame whose
     corner is each sample comes to a grazing meeting with the interface (a tangency, an inclusion's
-    extreme, or a shallow crossing; `_periodic.frame_clearance` of dn1), and the clearest sample (`_periodic.clearest_frame`).
+    extreme, or a shallow crossing; `_periodic.frame_clearance` of dn1), and the clearest sample
+    (`_periodic.clearest_frame`).
     origin_only: the frame as given only (an array of ones in shape; a third of the cost), the sample zeros."""
     from ._periodic import clearest_frame, frame_clearance
 
