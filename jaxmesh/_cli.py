@@ -517,8 +517,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "takes the sample whose box is farthest from grazing meetings with the interfaces (box "
                         "planes, edges or corners grazing an interface leave thin wedges of bad elements). The "
                         "mesh is in the rolled frame; the report's metadata.roll gives the offset. Without "
-                        "--roll, a periodic file input whose meshing fails "
-                        "is meshed once more with 'auto' (--roll 0 0 0: never)")
+                        "--roll, a periodic file input whose meshing fails is meshed once more with 'auto' "
+                        "(--roll 0 0 0: never)")
     m.add_argument("--redistance", action=argparse.BooleanOptionalAction, default=None, help=_REDISTANCE_HELP)
     m.add_argument("--close-box-layers", action=argparse.BooleanOptionalAction, default=None, help=_CLOSE_LAYERS_HELP)
     m.add_argument("--seed", type=int, default=0)

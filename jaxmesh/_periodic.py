@@ -258,7 +258,7 @@ def _crossing_slopes(values: np.ndarray, step: np.ndarray, origin_only: bool = F
 
     def shifted(index, a, by):
         index = list(index)
-        index[a] = (index[a] + by) % shape[a]
+        index[a] = wrap_index(index[a] + by, shape[a])
         return tuple(index)
 
     def gradient(index):

@@ -228,7 +228,7 @@ def box_plane_clearances(ms, origin_only: bool = False) -> tuple[np.ndarray, tup
     corner is each sample comes to a grazing meeting with the interface (a tangency, an inclusion's
     extreme, or a shallow crossing; `_periodic.frame_clearance` of dn1), and the clearest sample
     (`_periodic.clearest_frame`).
-    origin_only: the frame as given only (an array of ones in shape; a third of the cost), the sample zeros."""
+    origin_only: the frame as given only (an array of ones in shape; about a quarter of the cost), the sample zeros."""
     from ._periodic import clearest_frame, frame_clearance
 
     lower = np.array([inc.lower for inc in ms.inclusions], dtype=float).reshape(-1, ms.dim)
