@@ -235,12 +235,18 @@ def _distance_to_heights(n: int, length: float, heights: np.ndarray) -> np.ndarr
     return np.abs(minimum_image(planes[:, None] - np.asarray(heights)[None, :], np.array([length]))).min(axis=1)
 
 
+def _edge_crossings(values: np.ndarray, a: int) -> np.ndarray:
+    """(values.shape) where the zero set crosses the grid edge from each sample to the next along axis a
+    (periodic), as the fraction t in [0, 1] of the edge (linear interpolation); inf where the signs agree."""
+    ahead = np.roll(values, -1, axis=a)
+    with np.errstate(divide="ignore", invalid="ignore"):  # a sign change means different values: no 0 / 0
+        return np.where(np.sign(values) != np.sign(ahead), values / (values - ahead), np.inf)
+
+
 def _corner_crossings(values: np.ndarray, step: np.ndarray, a: int) -> np.ndarray:
     """(values.shape) distance along axis a from each sample to the zero crossing of the grid line
     through it in its two adjacent cells (inf where neither crosses): an interface near a box corner."""
-    ahead = np.roll(values, -1, axis=a)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(np.sign(values) != np.sign(ahead), values / (values - ahead), np.inf)
+    t = _edge_crossings(values, a)
     to_ahead = np.where(np.isfinite(t), (1.0 - t), np.inf)  # from sample k+1 back to the crossing in [k, k+1]
     return step[a] * np.minimum(t, np.roll(to_ahead, 1, axis=a))
 
@@ -266,10 +272,9 @@ def _crossing_slopes(values: np.ndarray, step: np.ndarray, origin_only: bool = F
                          for a in range(dim)])
 
     def crossing_edges(b, a=None):  # edges along b (in the plane x_a = 0 only, given a): indices, and t
-        part = values if a is None else np.take(values, [0], axis=a)
-        ahead = np.roll(part, -1, axis=b)
-        index = np.nonzero(np.sign(part) != np.sign(ahead))
-        return index, part[index] / (part[index] - ahead[index])
+        t = _edge_crossings(values if a is None else np.take(values, [0], axis=a), b)
+        index = np.nonzero(np.isfinite(t))
+        return index, t[index]
 
     for b in range(dim):
         found = [crossing_edges(b, a) for a in range(dim) if a != b] if origin_only else [crossing_edges(b)]

@@ -38,6 +38,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from scipy import ndimage
 
 from ._periodic import minimum_image, points_near, wrap
+from .geometry._components import _gradient
 from .geometry._differential import curvatures
 from .geometry._microstructure import _traceable
 from .geometry._grid import interpolate_linear
@@ -609,10 +610,8 @@ def _grid_normals(dn1: np.ndarray, box, points, periodic: bool = True) -> np.nda
     not periodic: one-sided differences on the border slices and the points clamped to the last
     node (a periodic difference there would take the far side's values)."""
     spacing = np.asarray(box) / np.asarray(dn1.shape)
-    if periodic:
-        grad = [(np.roll(dn1, -1, a) - np.roll(dn1, 1, a)) / (2.0 * spacing[a]) for a in range(dn1.ndim)]
-    else:
-        grad = np.gradient(dn1, *spacing)
+    grad = _gradient(dn1, spacing, periodic)
+    if not periodic:
         points = jnp.clip(jnp.asarray(points), 0.0, jnp.asarray((np.asarray(dn1.shape) - 1) * spacing))
     g = np.stack([np.asarray(interpolate_linear(jnp.asarray(c), box, points)) for c in grad], axis=-1)
     return g / np.maximum(np.linalg.norm(g, axis=-1, keepdims=True), 1e-300)
