@@ -6,8 +6,9 @@ Usage:
     python benchmarks/bench_frame.py --input g.npz         # a given input file
 
 Rows: the microstructure build (read or generate), the score of the frame as given (every periodic
-`mesh_rve` computes it for its input line's note), and the score of every frame (roll='auto', and the
-retry after a failure), best of --repeat runs each, with their ratios to the build. Not a test.
+`mesh_rve` computes it to decide whether the default rolls), and the score of every frame (roll='auto',
+the default's roll of a grazing box, and the retry after a failure), best of --repeat runs each, with
+their ratios to the build. Not a test.
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 # (--box-gap 0), meshed with the CLI defaults. Prints one line per input: exit status, time,
 # tets, mean q, min dihedral, how many tets stay below 10 deg and how many of those have a node on
 # the box, and the validator's verdict. SUMMARY_ONLY=1 re-reads the meshes of an earlier run;
-# MESH_ARGS adds options to `jaxmesh mesh` (e.g. MESH_ARGS="--roll auto").
+# MESH_ARGS adds options to `jaxmesh mesh` (e.g. MESH_ARGS="--roll auto"; MESH_ARGS="--roll 0 0 0" keeps
+# the frame as given, which the defaults roll when its box grazes an interface).
 #   bash benchmarks/sweep_grazing.sh [OUT_DIR] [SEEDS...]      (default: /tmp/jaxmesh_grazing, seeds 0-3)
 set -u
 here="$(cd "$(dirname "$0")/.." && pwd)"

@@ -378,9 +378,9 @@ def _cmd_validate(args: argparse.Namespace) -> int:
     ms = None
     if args.geometry:
         _read_as_meshed(args, mesh.metadata.get("input_reading", {}))
-        ms, _ = _as_microstructure(args.geometry, box=_box_arg(args.box) or tuple(mesh.box), periodic=mesh.periodic,
-                                   roll=_roll_arg(args.roll), redistance=args.redistance,
-                                   close_box_layers=args.close_box_layers)
+        ms, _, _ = _as_microstructure(args.geometry, box=_box_arg(args.box) or tuple(mesh.box),
+                                      periodic=mesh.periodic, roll=_roll_arg(args.roll), redistance=args.redistance,
+                                      close_box_layers=args.close_box_layers)
     report = validate(mesh, ms)
     print(report.summary())
     if ms is not None and not report.ok and set(report.failed) <= _GEOMETRY_CHECKS:
@@ -430,10 +430,11 @@ def _another_reading(mesh, args: argparse.Namespace, ms) -> str:
     if len(options) == 2:
         options.append(options[0] + options[1])
     for flags in options:
-        other, _ = _as_microstructure(args.geometry, box=_box_arg(args.box) or tuple(mesh.box), periodic=mesh.periodic,
-                                      roll="auto" if "--roll" in flags else _roll_arg(args.roll),
-                                      redistance=args.redistance or "--redistance" in flags,
-                                      close_box_layers=args.close_box_layers or "--close-box-layers" in flags)
+        other, _, _ = _as_microstructure(args.geometry, box=_box_arg(args.box) or tuple(mesh.box),
+                                         periodic=mesh.periodic,
+                                         roll="auto" if "--roll" in flags else _roll_arg(args.roll),
+                                         redistance=args.redistance or "--redistance" in flags,
+                                         close_box_layers=args.close_box_layers or "--close-box-layers" in flags)
         if validate(mesh, other).ok:
             return (f"valid with {' '.join(flags)}: the input read so is what the mesh follows (jaxmesh mesh "
                     "reads it so after a failed first try; its report's metadata says which)")
@@ -517,8 +518,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "takes the sample whose box is farthest from grazing meetings with the interfaces (box "
                         "planes, edges or corners grazing an interface leave thin wedges of bad elements). The "
                         "mesh is in the rolled frame; the report's metadata.roll gives the offset. Without "
-                        "--roll, a periodic file input whose meshing fails is meshed once more with 'auto' "
-                        "(--roll 0 0 0: never)")
+                        "--roll, a periodic grid whose box as given comes under a sixth of a grid step from "
+                        "such a meeting is meshed with 'auto', and one whose meshing fails is meshed once more "
+                        "with 'auto' (--roll 0 0 0: the frame as given, always)")
     m.add_argument("--redistance", action=argparse.BooleanOptionalAction, default=None, help=_REDISTANCE_HELP)
     m.add_argument("--close-box-layers", action=argparse.BooleanOptionalAction, default=None, help=_CLOSE_LAYERS_HELP)
     m.add_argument("--seed", type=int, default=0)

@@ -70,10 +70,13 @@ class MeshConfig:
         max_elements: refuse (ValueError, before the surfaces) a 3D conforming mesh whose size function
             predicts more tetrahedra than this; None: no limit. The estimate is
             _TETS_PER_PREDICTED * c * integral of h^-3 (`cellwise_element_count`).
-        roll: None (the box as given; when that fails with a MeshingError, a periodic file input or
-            periodic Microstructure (`Microstructure.can_roll`) is meshed once more with "auto" and
-            metadata['roll']['after_failure'] keeps the first error), "auto" or d integers (zeros: as
-            given, no second try): mesh a periodic grid rolled so that sample roll[a] lies at x_a = 0.
+        roll: None (default: the box as given, unless it comes closer than a sixth of a grid step to a
+            grazing meeting with the interface, where flat elements form: then a periodic file input or
+            periodic Microstructure that can roll (`Microstructure.can_roll`) is meshed with "auto" and
+            metadata['roll']['grazing_as_given'] is True; when the frame as given fails with a
+            MeshingError, it is meshed once more with "auto" and metadata['roll']['after_failure']
+            keeps the first error), "auto" or d integers (zeros: as given, no second try): mesh a
+            periodic grid rolled so that sample roll[a] lies at x_a = 0.
             "auto" takes the sample whose frame keeps the box farthest from every grazing meeting with
             the interface (a box plane near a point where the interface is tangent to it or near an
             inclusion's extreme, in 3D a box edge near a face trace's tangency, a corner near the
@@ -185,13 +188,18 @@ def _check_sizes_against_box(config: MeshConfig, box) -> None:
 
 
 def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redistance: bool = False,
-                       close_box_layers: bool = False):
-    """The Microstructure of source, and the roll applied ({} when none)."""
+                       close_box_layers: bool = False, may_roll: bool = True):
+    """The Microstructure of source, the roll applied ({} when none), and how close the box comes to a
+    grazing meeting with the interface when it was kept (roll None, not rolled) or given (d integers);
+    None after "auto" and where it does not apply (a plain box, no inclusion). roll None rolls as "auto"
+    when the box as given is closer than `_grazing_floor`, the input can roll and may_roll (the
+    conforming backend); the roll's info then has "grazing_as_given"."""
     from .geometry._microstructure import Microstructure
     from .io._read import load_input
 
     if isinstance(source, Microstructure):
-        if roll is not None and not source.can_roll:
+        can_roll = source.can_roll
+        if roll is not None and not can_roll:
             raise ValueError("MeshConfig.roll needs an input file or a periodic Microstructure built by "
                              "from_levelset, from_labels or from_functions; hint: pass the path")
         ms = source.redistanced() if redistance and source.can_redistance else source
@@ -201,6 +209,7 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redis
     elif isinstance(source, (str, Path)):
         ms = load_input(source, box=box, periodic=periodic, redistance=redistance,
                         close_box_layers=close_box_layers and not periodic)
+        can_roll = ms.can_roll
         reread = lambda samples: load_input(source, box=box, periodic=periodic, roll=samples,  # noqa: E731
                                             redistance=redistance)
     else:
@@ -208,9 +217,17 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redis
             f"expected a Microstructure or an input path (.npy/.npz/.tif), got {type(source).__name__}; "
             "hint: jaxmesh.load_input(path) or Microstructure.from_levelset(phi)"
         )
+    grazing = None
     if roll is None:
-        return ms, {}
+        if not ms.periodic or not ms.inclusions:
+            return ms, {}, None
+        as_given = float(box_plane_clearances(ms, origin_only=True)[0][(0,) * ms.dim])
+        if as_given >= _grazing_floor(ms) or not (may_roll and can_roll):
+            return ms, {}, as_given
+        roll, grazing = "auto", as_given
     clear, best = box_plane_clearances(ms)
+    if grazing is not None and not any(best):
+        return ms, {}, grazing
     samples = best if roll == "auto" else tuple(roll)
     if len(samples) != ms.dim:
         raise ValueError(f"MeshConfig.roll: expected {ms.dim} integers for this {ms.dim}D input, got {samples}")
@@ -218,9 +235,11 @@ def _as_microstructure(source, box=None, periodic: bool = True, roll=None, redis
     step = np.asarray(ms.box, float) / np.asarray(ms.grid_shape)
     info = {"samples": [int(k) for k in samples], "offset": [float(k * s) for k, s in zip(samples, step)],
             "clearance_before": float(clear[(0,) * ms.dim]), "clearance_after": float(clear[samples])}
+    if grazing is not None:
+        info["grazing_as_given"] = True
     if any(samples):
         ms = reread(samples)
-    return ms, info
+    return ms, info, None if roll == "auto" else info["clearance_after"]
 
 
 def box_plane_clearances(ms, origin_only: bool = False) -> tuple[np.ndarray, tuple[int, ...]]:
@@ -268,19 +287,25 @@ def _parts_note(ms) -> str:
             "keeps the image value")
 
 
-def _grazing_hint(ms) -> str:
-    """A note for the input line when the periodic box comes closer to a grazing meeting with the
-    interface (`box_plane_clearances`) than the size function's box-gap floor (a sixth of a grid step):
-    the wedge there will hold flat tets."""
-    if not ms.periodic or not ms.inclusions:
-        return ""
-    clear = float(box_plane_clearances(ms, origin_only=True)[0][(0,) * ms.dim])
-    if clear >= min(ms.spacing) / 6:
+def _grazing_floor(ms) -> float:
+    """The size function's box-gap floor, a sixth of a grid step: a periodic box closer than this to a
+    grazing meeting with the interface (`box_plane_clearances`) leaves a wedge of flat elements."""
+    return min(ms.spacing) / 6
+
+
+_GRAZING_ROLL = (": under a sixth of a grid step, where flat elements form, so the default rolled it; "
+                 "roll=(0, 0, 0) / --roll 0 0 0 keeps the frame")
+
+
+def _grazing_hint(ms, clear: float | None) -> str:
+    """A note for the input line when the periodic box, kept as given or as the roll gave it, comes closer
+    than `_grazing_floor` to a grazing meeting with the interface (clear: `_as_microstructure`'s)."""
+    if clear is None or clear >= _grazing_floor(ms):
         return ""
     return (f"; note: the box passes {clear:.2g} from a grazing meeting with the interface (the interface "
             "tangent to a box plane or crossing one at under 9.5 deg, a face's trace likewise with a box edge, or "
-            "the interface at a box corner), under a sixth of a grid step: expect flat tets there (roll='auto' / "
-            "--roll auto on a periodic grid moves the box)")
+            "the interface at a box corner), under a sixth of a grid step: expect flat tets there (the box is "
+            "kept: the roll was given, no frame of the grid is clearer, or this input cannot roll)")
 
 
 def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Callable[[str], None] | None = None):
@@ -326,6 +351,11 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
                 warnings.warn(line, stacklevel=2)
     for key, failure in retries:
         mesh.metadata.setdefault(key, {})["after_failure"] = str(failure)
+    roll = mesh.metadata.get("roll", {})
+    if roll.get("grazing_as_given") and progress is None:  # the frame changed: say so where no input line shows it
+        warnings.warn(f"the box as given passes {roll['clearance_before']:.2g} from a grazing meeting with the "
+                      f"interface{_GRAZING_ROLL}: the mesh is in the rolled frame, metadata['roll'] gives the "
+                      "offset", stacklevel=2)
     return mesh
 
 
@@ -365,12 +395,14 @@ def _retry_config(source, config: MeshConfig, box, failure: MeshingError) -> tup
 
 
 def _rolling_helps(ms, config: MeshConfig) -> bool:
-    """Whether a periodic microstructure meshed in its own frame (roll None; an explicit roll, zeros
-    included, is kept) can roll and rolling moves its box farther from grazing meetings with the interface."""
+    """Whether a periodic microstructure meshed in its own frame (roll None, its box clear of grazing
+    meetings, which the default rolls off; an explicit roll, zeros included, is kept) can roll and rolling
+    moves its box farther from grazing meetings with the interface."""
     if config.roll is not None or not config.periodic or config.backend != "conforming" or not ms.can_roll:
         return False
     clear, best = box_plane_clearances(ms)
-    return clear[best] > clear[(0,) * ms.dim]
+    as_given = clear[(0,) * ms.dim]
+    return _grazing_floor(ms) <= as_given < clear[best]
 
 
 def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
@@ -385,8 +417,10 @@ def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
         return now
 
     t = time.perf_counter()
-    ms, roll = _as_microstructure(source, box=box, periodic=config.periodic, roll=config.roll,
-                                  redistance=bool(config.redistance), close_box_layers=bool(config.close_box_layers))
+    ms, roll, as_given = _as_microstructure(source, box=box, periodic=config.periodic, roll=config.roll,
+                                            redistance=bool(config.redistance),
+                                            close_box_layers=bool(config.close_box_layers),
+                                            may_roll=config.backend == "conforming")
     config = config.for_box(ms.box)
     if config.backend == "conforming" and ms.periodic != config.periodic:
         raise ValueError(f"MeshConfig.periodic is {config.periodic} but the microstructure has periodic={ms.periodic} "
@@ -395,9 +429,10 @@ def _mesh_rve(source, config: MeshConfig, box, say: Callable[[str], None]):
     _check_sizes_against_box(config, ms.box)
     rolled = (f"; rolled by {tuple(roll['samples'])} samples (the mesh's origin is the file's "
               f"{tuple(round(v, 6) for v in roll['offset'])}; the box {roll['clearance_after']:.3g} from a "
-              f"grazing meeting with the interface, {roll['clearance_before']:.3g} unrolled)") if roll else ""
+              f"grazing meeting with the interface, {roll['clearance_before']:.3g} unrolled"
+              f"{_GRAZING_ROLL if roll.get('grazing_as_given') else ''})") if roll else ""
     t = stage("input", t, f"{ms.dim}D, {len(ms.inclusions)} inclusions, grid {tuple(ms.grid_shape)}{rolled}"
-                          f"{_parts_note(ms)}{_grazing_hint(ms) if config.roll is None else ''}"
+                          f"{_parts_note(ms)}{_grazing_hint(ms, as_given)}"
                           f"{_inside_out_hint(ms)}{_closed_layers_note(ms)}")
 
     if ms.dim == 2 and config.backend != "conforming":

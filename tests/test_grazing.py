@@ -35,7 +35,7 @@ def test_sphere_grazing_a_box_plane(radius, h, steps):
     depth = steps / n  # how far the sphere crosses y = 0, in grid steps
     spec = InclusionSpec("sphere", np.array([0.43, radius - depth, 0.57]), np.full(3, radius), np.eye(3))
     ms = microstructure_from_specs([spec], (1.0, 1.0, 1.0), (n,) * 3)
-    mesh = mesh_rve(ms, MeshConfig(h=h, seed=0))
+    mesh = mesh_rve(ms, MeshConfig(h=h, seed=0, roll=(0, 0, 0)))  # the frame kept (the default rolls)
     assert np.all((mesh.points >= 0) & (mesh.points <= 1))
     report = validate(mesh, ms)
     assert report.ok, report.summary()
@@ -48,7 +48,7 @@ def test_ellipsoid_grazing_two_planes_near_a_box_edge():
     depth = 0.1 / n
     centre = np.array([extent[0] - depth, extent[1] - depth, 0.5])
     ms = microstructure_from_specs([InclusionSpec("ellipsoid", centre, axes, rot)], (1.0, 1.0, 1.0), (n,) * 3)
-    mesh = mesh_rve(ms, MeshConfig(h=0.05, seed=0))
+    mesh = mesh_rve(ms, MeshConfig(h=0.05, seed=0, roll=(0, 0, 0)))
     report = validate(mesh, ms)
     assert report.ok, report.summary()
 
@@ -61,7 +61,7 @@ def test_sphere_trace_passing_just_above_a_box_edge():
     centre = np.array([cx, 0.5, np.sqrt((radius + gap) ** 2 - cx**2)])
     ms = microstructure_from_specs([InclusionSpec("sphere", centre, np.full(3, radius), np.eye(3))],
                                    (1.0, 1.0, 1.0), (n,) * 3)
-    mesh = mesh_rve(ms, MeshConfig(seed=0))
+    mesh = mesh_rve(ms, MeshConfig(seed=0, roll=(0, 0, 0)))
     report = validate(mesh, ms)
     assert report.ok, report.summary()
 
@@ -158,8 +158,9 @@ def test_frame_clearance_sees_a_box_plane_crossing_the_interface_at_a_shallow_an
 
 
 def test_the_input_line_notes_a_face_trace_grazing_a_box_edge(tmp_path, capsys):
-    """The sphere whose trace on y = 0 passes 2e-5 above the edge y = z = 0: the input line notes the
-    grazing meeting (its extremes are 0.02 from the planes, which the note did not see before), and
+    """The sphere whose trace on y = 0 passes 2e-5 above the edge y = z = 0 (its extremes are 0.02 from
+    the planes, which the score did not see before): by default the grid is rolled off that grazing
+    meeting and the input line says why; with the frame kept (roll zeros) it notes the meeting; and
     `jaxmesh info` gives the clearance as given and rolled."""
     from jaxmesh._cli import main
 
@@ -168,8 +169,14 @@ def test_the_input_line_notes_a_face_trace_grazing_a_box_edge(tmp_path, capsys):
     lines = []
     with pytest.raises(ValueError, match="max_elements"):
         mesh_rve(tmp_path / "edge.npy", MeshConfig(max_elements=10), progress=lines.append)
+    rolled = re.search(r"rolled by .* ([\d.e-]+) unrolled: under a sixth of a grid step, .* the default rolled it",
+                       lines[0])
+    assert rolled and float(rolled.group(1)) < 1e-4 and "note:" not in lines[0]
+    lines.clear()
+    with pytest.raises(ValueError, match="max_elements"):
+        mesh_rve(tmp_path / "edge.npy", MeshConfig(max_elements=10, roll=(0, 0, 0)), progress=lines.append)
     note = re.search(r"the box passes ([\d.e-]+) from a grazing meeting", lines[0])
-    assert note and float(note.group(1)) < 1e-4 and "--roll auto" in lines[0]
+    assert note and float(note.group(1)) < 1e-4 and "the box is kept: the roll was given" in lines[0]
     capsys.readouterr()
     assert main(["info", str(tmp_path / "edge.npy")]) == 0
     info = re.search(r"box_plane_clearance: ([\d.e-]+)\n\s+with_roll_auto: ([\d.e-]+) \(samples",
@@ -180,7 +187,8 @@ def test_the_input_line_notes_a_face_trace_grazing_a_box_edge(tmp_path, capsys):
 def test_roll_auto_meshes_a_grid_sphere_grazing_a_box_plane_without_slivers(tmp_path):
     """A sphere 2e-6 across x = 0 (a 0.05 deg tet in an ellipsoid RVE like it): with roll 'auto' the box
     planes move to the grid planes farthest from its extremes, the mesh is valid in the rolled frame,
-    its tets keep 10 deg, and the metadata gives the offset."""
+    its tets keep 10 deg, and the metadata gives the offset. The default (roll None) rolls it so too;
+    with the frame kept (roll zeros) the input line warns."""
     from jaxmesh import quality_report
 
     n, radius = 32, 0.2
@@ -192,16 +200,20 @@ def test_roll_auto_meshes_a_grid_sphere_grazing_a_box_plane_without_slivers(tmp_
     np.save(tmp_path / "graze.npy", np.linalg.norm(d, axis=-1) - radius)
     lines = []  # as given, the input line warns (the size stage then stops: max_elements)
     with pytest.raises(ValueError, match="max_elements"):
-        mesh_rve(tmp_path / "graze.npy", MeshConfig(max_elements=10), progress=lines.append)
-    assert "the box passes" in lines[0] and "--roll auto" in lines[0]
+        mesh_rve(tmp_path / "graze.npy", MeshConfig(max_elements=10, roll=(0, 0, 0)), progress=lines.append)
+    assert "the box passes" in lines[0] and "the box is kept" in lines[0]
     lines.clear()
     mesh = mesh_rve(tmp_path / "graze.npy", MeshConfig(roll="auto", seed=0), progress=lines.append)
     assert "rolled by" in lines[0] and "note:" not in lines[0]
     roll = mesh.metadata["roll"]
     assert roll["samples"][0] != 0 and roll["clearance_before"] < 1e-3 < 0.02 < roll["clearance_after"]
-    assert roll["offset"][0] == pytest.approx(roll["samples"][0] / n)
+    assert roll["offset"][0] == pytest.approx(roll["samples"][0] / n) and "grazing_as_given" not in roll
     assert mesh.metadata["validation"]["ok"], mesh.metadata["validation"]
     assert quality_report(mesh)["min_dihedral_deg"] >= 10.0
+    lines.clear()
+    with pytest.raises(ValueError, match="max_elements"):
+        mesh_rve(tmp_path / "graze.npy", MeshConfig(max_elements=10), progress=lines.append)
+    assert f"rolled by {tuple(roll['samples'])} samples" in lines[0] and "the default rolled it" in lines[0]
     with pytest.raises(ValueError, match="periodic"):
         MeshConfig(roll="auto", periodic=False)
     spec = InclusionSpec("sphere", centre, np.full(3, radius), np.eye(3))  # the same sphere, analytic
@@ -209,23 +221,29 @@ def test_roll_auto_meshes_a_grid_sphere_grazing_a_box_plane_without_slivers(tmp_
     assert analytic.metadata["roll"]["samples"] == roll["samples"] and analytic.metadata["validation"]["ok"]
 
 
-def _grazing_sphere_file(path, n=24, radius=0.2):
-    x = np.arange(n) / n
+_HALF_STEP_CLEAR = 0.2 + 0.5 / 24  # a sphere of radius 0.2 half a step (of 24) clear of x = 0
+
+
+def _sphere_file(path):
+    """The grid (24^3) of that sphere: a frame the default keeps (clearer than a sixth of a step) that
+    rolling clears further."""
+    x = np.arange(24) / 24
     X = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1)
-    d = X - np.array([radius - 2e-6, 0.47, 0.55])
+    d = X - np.array([_HALF_STEP_CLEAR, 0.47, 0.55])
     d -= np.round(d)
-    np.save(path, np.linalg.norm(d, axis=-1) - radius)
+    np.save(path, np.linalg.norm(d, axis=-1) - 0.2)
     return path
 
 
 def test_a_failure_in_the_files_frame_is_meshed_again_rolled(tmp_path, monkeypatch):
-    """roll None: a MeshingError in the file's own frame gets one more try with roll 'auto' (a valid
+    """roll None: a MeshingError in the file's own frame (one the default keeps: half a step clear of the
+    sphere) gets one more try with roll 'auto' (a valid
     mesh whose metadata keeps the first error); an explicit roll, zeros included, gets none. The same
     grid given in memory (`Microstructure.from_levelset`) is rolled the same way, and the same sphere as
     an analytic inclusion in memory (`microstructure_from_specs`) by its function shifted."""
     from jaxmesh import Microstructure, MeshingError, _pipeline
 
-    path = _grazing_sphere_file(tmp_path / "graze.npy")
+    path = _sphere_file(tmp_path / "clear_half_step.npy")
     real = _pipeline._mesh_3d
     calls = []
 
@@ -253,7 +271,7 @@ def test_a_failure_in_the_files_frame_is_meshed_again_rolled(tmp_path, monkeypat
     assert calls == [None, "auto"] and in_memory.metadata["roll"]["samples"] == roll["samples"]
     assert in_memory.metadata["validation"]["ok"] and len(in_memory.cells) == len(mesh.cells)
     calls.clear()  # analytic inclusions in memory: their functions shifted
-    spec = InclusionSpec("sphere", np.array([0.2 - 2e-6, 0.47, 0.55]), np.full(3, 0.2), np.eye(3))
+    spec = InclusionSpec("sphere", np.array([_HALF_STEP_CLEAR, 0.47, 0.55]), np.full(3, 0.2), np.eye(3))
     analytic = mesh_rve(microstructure_from_specs([spec], (1.0, 1.0, 1.0), (24,) * 3), MeshConfig(h=0.08, seed=0))
     assert calls == [None, "auto"] and analytic.metadata["roll"]["samples"] == roll["samples"]
     assert analytic.metadata["validation"]["ok"], analytic.metadata["validation"]
@@ -264,7 +282,7 @@ def test_a_failure_no_frame_can_remove_is_not_meshed_again(tmp_path, monkeypatch
     any frame) is raised at once, without the rolled retry."""
     from jaxmesh import MeshingError, _pipeline
 
-    path = _grazing_sphere_file(tmp_path / "graze.npy")
+    path = _sphere_file(tmp_path / "clear_half_step.npy")
     calls = []
 
     def fails_in_any_frame(ms, config, stage, t):
@@ -285,7 +303,7 @@ def test_a_failure_that_rolling_cannot_help_is_raised_as_it_is(tmp_path, monkeyp
         raise MeshingError("volume", f"recovery stopped (roll {config.roll})")
 
     monkeypatch.setattr(_pipeline, "_mesh_3d", always_fails)
-    path = _grazing_sphere_file(tmp_path / "graze.npy")
+    path = _sphere_file(tmp_path / "clear_half_step.npy")
     with pytest.raises(MeshingError, match=r"roll None.*meshed again with roll='auto', it failed too.*roll auto"):
         mesh_rve(path, MeshConfig(h=0.08))
     x = np.arange(24) / 24
@@ -293,7 +311,7 @@ def test_a_failure_that_rolling_cannot_help_is_raised_as_it_is(tmp_path, monkeyp
     np.save(tmp_path / "clear.npy", np.linalg.norm(X - 0.5, axis=-1) - 0.2)  # box planes already clearest
     with pytest.raises(MeshingError, match=r"^stage 'volume': recovery stopped \(roll None\)$"):
         mesh_rve(tmp_path / "clear.npy", MeshConfig(h=0.08))
-    spec = InclusionSpec("sphere", np.array([0.2, 0.5, 0.5]), np.full(3, 0.2), np.eye(3))
+    spec = InclusionSpec("sphere", np.array([_HALF_STEP_CLEAR, 0.5, 0.5]), np.full(3, 0.2), np.eye(3))
     with pytest.raises(MeshingError, match=r"roll None.*meshed again with roll='auto', it failed too.*roll auto"):
         mesh_rve(microstructure_from_specs([spec], (1.0, 1.0, 1.0), (24,) * 3), MeshConfig(h=0.08))
     with pytest.raises(MeshingError, match=r"\(roll None\)$"):  # a plain box's faces are the domain's: no retry
@@ -301,11 +319,12 @@ def test_a_failure_that_rolling_cannot_help_is_raised_as_it_is(tmp_path, monkeyp
                  MeshConfig(h=0.08, periodic=False))
 
 
-def test_a_sphere_touching_a_box_plane_is_meshed_again_rolled(tmp_path):
-    """A sphere tangent to z = 0 at a grid node (phi exactly 0 there): in the file's frame the matrix
-    between sphere and plane thins to nothing and tets there stay flat (|V| <= 1e-6 l_max^3 or a
-    dihedral angle below 0.01 deg), so the volume stage stops with a frame-dependent error and the
-    file is meshed again rolled; with roll=(0, 0, 0) (the frame kept) the error says the remedy."""
+def test_a_sphere_touching_a_box_plane_is_meshed_rolled(tmp_path):
+    """A sphere tangent to z = 0 at a grid node (phi exactly 0 there): in the file's frame (roll=(0, 0, 0),
+    kept) the matrix between sphere and plane thins to nothing and tets there stay flat (|V| <= 1e-6
+    l_max^3 or a dihedral angle below 0.01 deg), so the volume stage stops with a frame-dependent error
+    that says the remedy; by default the file is meshed rolled (its box as given grazes the sphere),
+    with a warning where no progress line says it."""
     from jaxmesh import Microstructure, MeshingError, quality_report
 
     n, radius = 16, 0.25
@@ -321,17 +340,17 @@ def test_a_sphere_touching_a_box_plane_is_meshed_again_rolled(tmp_path):
     with pytest.warns(UserWarning, match="rolled frame"):
         mesh = mesh_rve(tmp_path / "tangent.npy", MeshConfig(seed=0))
     roll = mesh.metadata["roll"]
-    assert roll["samples"][2] != 0 and "touches the box plane z = 0" in roll["after_failure"]
+    assert roll["samples"][2] != 0 and roll["grazing_as_given"] and "after_failure" not in roll
     assert mesh.metadata["validation"]["ok"], mesh.metadata["validation"]
     assert quality_report(mesh)["min_dihedral_deg"] >= 10.0
 
 
-def test_a_recovery_that_chases_a_sphere_past_a_box_edge_stops_early_and_is_meshed_again_rolled():
+def test_a_recovery_that_chases_a_sphere_past_a_box_edge_stops_early_and_is_meshed_rolled():
     """A sphere passing 3e-5 (1e-3 grid steps) from the box edge y = z = 0 crosses both planes and leaves
     a strip of face that thin between its traces and the edge: the recovery splits the strip's triangles
     round after round (a periodic excursion set at 64^3 did so until Qhull merged two nodes, reported as
     duplicates). It stops once an edge to split is under VolumeConfig.min_split_edge of the median surface
-    edge, naming the edge; mesh_rve then meshes the microstructure again rolled."""
+    edge, naming the edge. By default mesh_rve meshes the microstructure rolled (its box grazes the sphere)."""
     from jaxmesh import MeshingError
     from jaxmesh.geometry._microstructure import Microstructure
     from jaxmesh.geometry._shapes import sphere_sdf
@@ -345,15 +364,15 @@ def test_a_recovery_that_chases_a_sphere_past_a_box_edge_stops_early_and_is_mesh
     assert failure.value.stage == "volume" and failure.value.frame_dependent
     with pytest.warns(UserWarning, match="rolled frame"):
         mesh = mesh_rve(ms, MeshConfig(seed=0))
-    assert "recovery stalled" in mesh.metadata["roll"]["after_failure"]
+    assert mesh.metadata["roll"]["grazing_as_given"] and "after_failure" not in mesh.metadata["roll"]
     assert mesh.metadata["validation"]["ok"], mesh.metadata["validation"]
 
 
-def test_a_circle_touching_a_box_edge_is_meshed_again_rolled(tmp_path):
-    """The 2D case: a circle tangent to y = 0 at a grid node. The triangles in the cusp keep a fair
-    area ratio (V / l_max^2 above 1e-6, a cap's area goes with its small angles, not their product) but
-    angles near 1e-3 deg, so the angle bound (0.01 deg) is what refuses them; the file is meshed again
-    rolled with no angle below 20 deg."""
+def test_a_circle_touching_a_box_edge_is_meshed_rolled(tmp_path):
+    """The 2D case: a circle tangent to y = 0 at a grid node. In the file's frame the triangles in the
+    cusp keep a fair area ratio (V / l_max^2 above 1e-6, a cap's area goes with its small angles, not
+    their product) but angles near 1e-3 deg, so the angle bound (0.01 deg) is what refuses them; by
+    default the file is meshed rolled with no angle below 20 deg."""
     from jaxmesh import Microstructure, MeshingError, quality_report
 
     n, radius = 64, 0.25
@@ -370,6 +389,6 @@ def test_a_circle_touching_a_box_edge_is_meshed_again_rolled(tmp_path):
     np.save(tmp_path / "tangent2d.npy", phi)
     with pytest.warns(UserWarning, match="rolled frame"):
         mesh = mesh_rve(tmp_path / "tangent2d.npy", MeshConfig(seed=0))
-    assert mesh.metadata["roll"]["samples"][1] != 0
+    assert mesh.metadata["roll"]["samples"][1] != 0 and mesh.metadata["roll"]["grazing_as_given"]
     assert mesh.metadata["validation"]["ok"], mesh.metadata["validation"]
     assert quality_report(mesh)["min_angle_deg"] >= 20.0
