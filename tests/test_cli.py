@@ -291,10 +291,12 @@ def test_mesh_refuses_bad_outputs_before_meshing(tmp_path, capsys, monkeypatch, 
 
 
 def test_mesh_and_validate_with_roll_auto(tmp_path, capsys):
-    """A rolled mesh conforms to the geometry read with the same --roll, and not to the file's frame."""
+    """A rolled mesh conforms to the geometry read with the same --roll, and not to the file's frame (the
+    sphere half a step clear of x = 0: a frame the default keeps, so a legacy file read without --roll
+    fails and the hint names the roll)."""
     n, radius = 24, 0.25
     x = np.arange(n) / n
-    d = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1) - np.array([radius + 0.004, 0.5, 0.45])
+    d = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1) - np.array([radius + 0.02, 0.5, 0.45])
     d -= np.round(d)
     phi, out = tmp_path / "phi.npy", tmp_path / "m.vtu"
     np.save(phi, np.linalg.norm(d, axis=-1) - radius)

@@ -681,7 +681,7 @@ def test_redistance_makes_a_field_a_distance_with_the_same_signs(periodic):
     from jaxmesh._pipeline import _as_microstructure
 
     given = Microstructure.from_levelset(field, periodic=periodic)
-    meshed, _ = _as_microstructure(given, periodic=periodic, redistance=True)  # MeshConfig(redistance=True)
+    meshed = _as_microstructure(given, periodic=periodic, redistance=True)[0]  # MeshConfig(redistance=True)
     assert given.can_redistance and not ms.can_redistance and not meshed.can_redistance
     assert meshed.inclusions[0].description["redistanced"] is True
     assert np.array_equal(meshed.phi(on), ms.phi(on))
