@@ -259,12 +259,17 @@ def _slope_info(ms) -> dict:
 
 
 def _box_plane_info(ms) -> dict:
-    """How close the box comes to a grazing meeting with the interface, as given and with --roll auto."""
-    from ._pipeline import box_plane_clearances
+    """How close the box comes to a grazing meeting with the interface, as given and with --roll auto, and
+    whether `jaxmesh mesh` rolls it by default (`_pipeline._as_microstructure`)."""
+    from ._pipeline import _grazing_floor, box_plane_clearances
 
     clear, best = box_plane_clearances(ms)
-    return {"box_plane_clearance": round(float(clear[(0,) * ms.dim]), 6),
-            "with_roll_auto": f"{clear[best]:.6g} (samples {list(best)})"}
+    as_given = float(clear[(0,) * ms.dim])
+    rolls = as_given < _grazing_floor(ms) and any(best) and ms.can_roll
+    return {"box_plane_clearance": round(as_given, 6),
+            "with_roll_auto": f"{clear[best]:.6g} (samples {list(best)})",
+            "default_roll": ("yes: the box as given is under a sixth of a grid step from a grazing meeting, so "
+                             "jaxmesh mesh rolls as --roll auto (--roll 0 0 0 keeps the frame)") if rolls else "no"}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -437,7 +442,7 @@ def _another_reading(mesh, args: argparse.Namespace, ms) -> str:
                                          close_box_layers=args.close_box_layers or "--close-box-layers" in flags)
         if validate(mesh, other).ok:
             return (f"valid with {' '.join(flags)}: the input read so is what the mesh follows (jaxmesh mesh "
-                    "reads it so after a failed first try; its report's metadata says which)")
+                    "reads it so when asked or after a failed first try; its report's metadata says which)")
     return ""
 
 

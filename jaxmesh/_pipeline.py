@@ -354,7 +354,7 @@ def mesh_rve(source, config: MeshConfig | None = None, *, box=None, progress: Ca
     roll = mesh.metadata.get("roll", {})
     if roll.get("grazing_as_given") and progress is None:  # the frame changed: say so where no input line shows it
         warnings.warn(f"the box as given passes {roll['clearance_before']:.2g} from a grazing meeting with the "
-                      f"interface{_GRAZING_ROLL}: the mesh is in the rolled frame, metadata['roll'] gives the "
+                      f"interface{_GRAZING_ROLL}. The mesh is in the rolled frame, metadata['roll'] gives the "
                       "offset", stacklevel=2)
     return mesh
 

@@ -17,7 +17,8 @@ def test_generate_info_mesh_validate_2d(tmp_path, capsys):
     assert main(["info", str(rve)]) == 0
     info = capsys.readouterr().out
     assert "inclusions: 4" in info.replace("  ", " ").replace("  ", " ")
-    assert re.search(r"box_plane_clearance: [\d.e-]+\n\s+with_roll_auto: [\d.e-]+ \(samples \[\d+, \d+\]\)", info)
+    assert re.search(r"box_plane_clearance: [\d.e-]+\n\s+with_roll_auto: [\d.e-]+ \(samples \[\d+, \d+\]\)\n\s+"
+                     r"default_roll: no\n", info)
     out, report, plot = tmp_path / "m.vtu", tmp_path / "r.json", tmp_path / "m.png"
     assert main(["mesh", str(rve), "-o", str(out), "--h", "0.03", "--report", str(report), "--plot", str(plot)]) == 0
     data = json.loads(report.read_text())

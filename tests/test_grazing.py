@@ -179,9 +179,9 @@ def test_the_input_line_notes_a_face_trace_grazing_a_box_edge(tmp_path, capsys):
     assert note and float(note.group(1)) < 1e-4 and "the box is kept: the roll was given" in lines[0]
     capsys.readouterr()
     assert main(["info", str(tmp_path / "edge.npy")]) == 0
-    info = re.search(r"box_plane_clearance: ([\d.e-]+)\n\s+with_roll_auto: ([\d.e-]+) \(samples",
-                     capsys.readouterr().out)
-    assert float(info.group(1)) < 1e-4 < 0.2 < float(info.group(2))
+    printed = capsys.readouterr().out
+    info = re.search(r"box_plane_clearance: ([\d.e-]+)\n\s+with_roll_auto: ([\d.e-]+) \(samples", printed)
+    assert float(info.group(1)) < 1e-4 < 0.2 < float(info.group(2)) and "default_roll: yes" in printed
 
 
 def test_roll_auto_meshes_a_grid_sphere_grazing_a_box_plane_without_slivers(tmp_path):
