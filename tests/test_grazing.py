@@ -324,7 +324,8 @@ def test_a_sphere_touching_a_box_plane_is_meshed_rolled(tmp_path):
     kept) the matrix between sphere and plane thins to nothing and tets there stay flat (|V| <= 1e-6
     l_max^3 or a dihedral angle below 0.01 deg), so the volume stage stops with a frame-dependent error
     that says the remedy; by default the file is meshed rolled (its box as given grazes the sphere),
-    with a warning where no progress line says it."""
+    with a warning where no progress line says it, and `jaxmesh validate` of a legacy .vtk of it (no roll
+    in the file) reads the input by the same default."""
     from jaxmesh import Microstructure, MeshingError, quality_report
 
     n, radius = 16, 0.25
@@ -343,6 +344,12 @@ def test_a_sphere_touching_a_box_plane_is_meshed_rolled(tmp_path):
     assert roll["samples"][2] != 0 and roll["grazing_as_given"] and "after_failure" not in roll
     assert mesh.metadata["validation"]["ok"], mesh.metadata["validation"]
     assert quality_report(mesh)["min_dihedral_deg"] >= 10.0
+    from jaxmesh._cli import main  # a legacy .vtk carries no roll: validate reads the input by the same default
+    from jaxmesh.io import write_mesh
+
+    legacy = write_mesh(mesh, tmp_path / "m.vtk")
+    assert main(["validate", str(legacy), "--geometry", str(tmp_path / "tangent.npy")]) == 0
+    assert main(["validate", str(legacy), "--geometry", str(tmp_path / "tangent.npy"), "--roll", "0", "0", "0"]) == 1
 
 
 def test_a_recovery_that_chases_a_sphere_past_a_box_edge_stops_early_and_is_meshed_rolled():
